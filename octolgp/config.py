@@ -1,0 +1,301 @@
+"""Frozen, validated configuration: one section per pipeline stage.
+
+Every section is a frozen, slotted dataclass validated in ``__post_init__``; a bad
+value raises :class:`~octolgp.errors.OctolgpError` naming the field. There are no
+globals: two maps with different configs can live in one process.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from octolgp.errors import MapFileNotFound, OctolgpError
+
+
+def _positive(owner: str, name: str, value: object, *, allow_zero: bool = False) -> None:
+    """Raise unless ``value`` is a finite real number > 0 (or >= 0)."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = value >= 0 if allow_zero else value > 0  # type: ignore[operator]
+    if not ok:
+        bound = ">= 0" if allow_zero else "> 0"
+        raise OctolgpError(f"{owner}.{name} must be a finite number {bound}, got {value!r}")
+
+
+def _integer(owner: str, name: str, value: object, lo: int, hi: int | None = None) -> None:
+    """Raise unless ``value`` is an int in ``[lo, hi]``."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < lo:
+        raise OctolgpError(f"{owner}.{name} must be an integer >= {lo}, got {value!r}")
+    if hi is not None and value > hi:
+        raise OctolgpError(f"{owner}.{name} must be an integer <= {hi}, got {value!r}")
+
+
+def _fraction(owner: str, name: str, value: object, *, open_low: bool = False) -> None:
+    """Raise unless ``value`` is a finite number in [0, 1] (or (0, 1))."""
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if ok:
+        ok = (0 < value < 1) if open_low else (0 <= value <= 1)  # type: ignore[operator]
+    if not ok:
+        rng = "(0, 1)" if open_low else "[0, 1]"
+        raise OctolgpError(f"{owner}.{name} must be a number in {rng}, got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class Hyperparameters:
+    """Kernel and PLSC hyperparameters.
+
+    Parameters
+    ----------
+    length_scale : float
+        Matérn ν=3/2 length scale ``l``, metres.
+    signal_variance : float
+        Signal variance ``σf²`` (the paper reports ``σf``, its square root).
+    noise_variance : float
+        Observation noise variance ``σn²`` (the paper reports ``σn``).
+    alpha, beta : float
+        PLSC scale and offset: ``p(occupied) = Φ((α μ + β) / sqrt(1 + α² σ²))``.
+    """
+
+    length_scale: float = 1.0
+    signal_variance: float = 1.0
+    noise_variance: float = 0.1
+    alpha: float = 1.0
+    beta: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("length_scale", "signal_variance", "noise_variance"):
+            _positive("Hyperparameters", name, getattr(self, name))
+        for name in ("alpha", "beta"):
+            value = getattr(self, name)
+            if not isinstance(value, int | float) or not math.isfinite(value):
+                raise OctolgpError(f"Hyperparameters.{name} must be a finite number, got {value!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class TrainingConfig:
+    """How beams become training data (scan → hits and free segments).
+
+    Parameters
+    ----------
+    free_margin : float or None
+        A free segment stops this many metres short of its hit so that it does not
+        cancel the hit. ``None`` means one map resolution.
+    dedup : bool
+        Keep one hit per voxel and one free segment per voxel of its end point.
+        Without it, free evidence swamps the hits on real logs.
+    quadrature_spacing : float
+        Clenshaw-Curtis node spacing along a segment, as a fraction of the
+        length scale. A segment of length ``L`` gets
+        ``ceil(L / (spacing * length_scale)) + 1`` nodes (clamped below).
+    min_quadrature_nodes, max_quadrature_nodes : int
+        Bounds on the nodes per segment.
+    """
+
+    free_margin: float | None = None
+    dedup: bool = True
+    quadrature_spacing: float = 0.5
+    min_quadrature_nodes: int = 3
+    max_quadrature_nodes: int = 33
+
+    def __post_init__(self) -> None:
+        if self.free_margin is not None:
+            _positive("TrainingConfig", "free_margin", self.free_margin, allow_zero=True)
+        if not isinstance(self.dedup, bool):
+            raise OctolgpError(f"TrainingConfig.dedup must be a bool, got {self.dedup!r}")
+        _positive("TrainingConfig", "quadrature_spacing", self.quadrature_spacing)
+        _integer("TrainingConfig", "min_quadrature_nodes", self.min_quadrature_nodes, 2)
+        _integer(
+            "TrainingConfig", "max_quadrature_nodes", self.max_quadrature_nodes,
+            self.min_quadrature_nodes,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class PartitionConfig:
+    """Coarse boxes, iterative k-means under a size cap, and overlap (Kim & Kim §III-B).
+
+    Parameters
+    ----------
+    box_size : float
+        Edge of the coarse boxes the hits are first split into, metres.
+    max_cluster_size : int
+        Cap on a cluster's own training items (hits plus their free segments)
+        before extension; k-means is repeated on any cluster over it.
+    overlap : float
+        Extension of each cluster: its box grows by this fraction of its extent on
+        every side, and it takes in every hit (with its segment) inside. Default 0.2.
+    seed : int
+        Seed of k-means.
+    """
+
+    box_size: float = 10.0
+    max_cluster_size: int = 400
+    overlap: float = 0.2
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _positive("PartitionConfig", "box_size", self.box_size)
+        _integer("PartitionConfig", "max_cluster_size", self.max_cluster_size, 2)
+        _positive("PartitionConfig", "overlap", self.overlap, allow_zero=True)
+        _integer("PartitionConfig", "seed", self.seed, 0)
+
+
+@dataclass(frozen=True, slots=True)
+class LearningConfig:
+    """Which data the hyperparameters are learnt on.
+
+    Length scales learnt on one small subset swing widely, so the log marginal
+    likelihood is summed over several clusters that share the hyperparameters.
+
+    Parameters
+    ----------
+    max_clusters : int
+        Number of clusters (spread over the map) whose likelihoods are summed.
+    max_items_per_cluster : int
+        Each chosen cluster is randomly subsampled to at most this many items.
+    seed : int
+        Seed for the choice of clusters and items.
+    """
+
+    max_clusters: int = 8
+    max_items_per_cluster: int = 400
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _integer("LearningConfig", "max_clusters", self.max_clusters, 1)
+        _integer("LearningConfig", "max_items_per_cluster", self.max_items_per_cluster, 4)
+        _integer("LearningConfig", "seed", self.seed, 0)
+
+
+@dataclass(frozen=True, slots=True)
+class OgmConfig:
+    """The log-odds occupancy grid baseline; OctoMap's default sensor model.
+
+    Parameters
+    ----------
+    prob_hit, prob_miss : float
+        Inverse sensor model for the end voxel and the traversed voxels.
+    clamping_thres_min, clamping_thres_max : float
+        Probability clamping bounds.
+    """
+
+    prob_hit: float = 0.7
+    prob_miss: float = 0.4
+    clamping_thres_min: float = 0.1192
+    clamping_thres_max: float = 0.971
+
+    def __post_init__(self) -> None:
+        for name in ("prob_hit", "prob_miss", "clamping_thres_min", "clamping_thres_max"):
+            _fraction("OgmConfig", name, getattr(self, name), open_low=True)
+        if not self.prob_miss < 0.5 < self.prob_hit:
+            raise OctolgpError("OgmConfig.prob_hit must be > 0.5 > OgmConfig.prob_miss")
+        if not self.clamping_thres_min < self.clamping_thres_max:
+            raise OctolgpError(
+                "OgmConfig.clamping_thres_min must be below OgmConfig.clamping_thres_max"
+            )
+
+
+@dataclass(frozen=True, slots=True)
+class MapConfig:
+    """Everything that defines a map. ``MapConfig()`` serves as is.
+
+    Parameters
+    ----------
+    dim : int
+        2 or 3. Default 3.
+    resolution : float
+        Voxel edge, metres. Default 0.1.
+    hyperparameters : Hyperparameters or None
+        ``None`` (default) learns them from the data; a value is used as given.
+    memory_budget_mb : float or None
+        Bound on the RAM held by leaves; ``None`` (default) means no bound.
+    tree_depth : int
+        OctoMap key depth: keys are 16-bit, ``floor(x / resolution) + 2**(depth-1)``.
+    training, partition, learning, ogm
+        The per-stage sections.
+    """
+
+    dim: int = 3
+    resolution: float = 0.1
+    hyperparameters: Hyperparameters | None = None
+    memory_budget_mb: float | None = None
+    tree_depth: int = 16
+    training: TrainingConfig = field(default_factory=TrainingConfig)
+    partition: PartitionConfig = field(default_factory=PartitionConfig)
+    learning: LearningConfig = field(default_factory=LearningConfig)
+    ogm: OgmConfig = field(default_factory=OgmConfig)
+
+    def __post_init__(self) -> None:
+        if self.dim not in (2, 3) or isinstance(self.dim, bool):
+            raise OctolgpError(f"MapConfig.dim must be 2 or 3, got {self.dim!r}")
+        _positive("MapConfig", "resolution", self.resolution)
+        if self.memory_budget_mb is not None:
+            _positive("MapConfig", "memory_budget_mb", self.memory_budget_mb)
+        _integer("MapConfig", "tree_depth", self.tree_depth, 1, 16)
+        checks: tuple[tuple[str, type], ...] = (
+            ("hyperparameters", Hyperparameters),
+            ("training", TrainingConfig),
+            ("partition", PartitionConfig),
+            ("learning", LearningConfig),
+            ("ogm", OgmConfig),
+        )
+        for name, kind in checks:
+            value = getattr(self, name)
+            if value is None and name == "hyperparameters":
+                continue
+            if not isinstance(value, kind):
+                raise OctolgpError(f"MapConfig.{name} must be a {kind.__name__}, got {value!r}")
+
+    @property
+    def free_margin(self) -> float:
+        """Metres a free segment stops short of its hit."""
+        margin = self.training.free_margin
+        return self.resolution if margin is None else margin
+
+    def to_dict(self) -> dict[str, Any]:
+        """Return the config as nested plain dicts (``None`` values dropped, TOML-ready)."""
+
+        def strip(d: dict[str, Any]) -> dict[str, Any]:
+            return {k: strip(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
+
+        return strip(dataclasses.asdict(self))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> MapConfig:
+        """Build a config from nested dicts, as read from TOML or JSON."""
+        sections: dict[str, type] = {
+            "hyperparameters": Hyperparameters,
+            "training": TrainingConfig,
+            "partition": PartitionConfig,
+            "learning": LearningConfig,
+            "ogm": OgmConfig,
+        }
+        kwargs: dict[str, Any] = {}
+        valid = {f.name for f in dataclasses.fields(cls)}
+        for key, value in data.items():
+            if key not in valid:
+                raise OctolgpError(f"MapConfig has no field {key!r}")
+            if key in sections and isinstance(value, dict):
+                try:
+                    value = sections[key](**value)
+                except TypeError as exc:
+                    raise OctolgpError(f"MapConfig.{key}: {exc}") from None
+            kwargs[key] = value
+        return cls(**kwargs)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> MapConfig:
+        """Read a config from a TOML file (sections as tables)."""
+        p = Path(path)
+        if not p.is_file():
+            raise MapFileNotFound(f"config file {str(p)!r} does not exist")
+        try:
+            data = tomllib.loads(p.read_text())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise OctolgpError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
+        return cls.from_dict(data)

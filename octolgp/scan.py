@@ -1,0 +1,154 @@
+"""Range scans in the world frame: the input of every map."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from octolgp.errors import OctolgpError
+
+FloatArray = NDArray[np.float64]
+
+
+def as_points(value: object, name: str, dim: int | None = None) -> FloatArray:
+    """Validate an ``(n, d)`` array of finite coordinates and return it as float64.
+
+    Parameters
+    ----------
+    value : array_like
+        Candidate array.
+    name : str
+        Field name used in the error message.
+    dim : int, optional
+        Required second dimension (2 or 3); any of 1, 2, 3 when omitted.
+
+    Raises
+    ------
+    OctolgpError
+        On a wrong type, shape, non-numeric dtype or a non-finite value.
+    """
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # noqa: BLE001 - anything numpy cannot coerce
+        raise OctolgpError(f"{name} is not an array: {exc}") from None
+    if arr.dtype.kind not in "iuf":
+        raise OctolgpError(f"{name} must be numeric, got dtype {arr.dtype}")
+    if arr.ndim != 2 or (dim is not None and arr.shape[1] != dim) or arr.shape[1] not in (1, 2, 3):
+        want = f"(n, {dim})" if dim is not None else "(n, d) with d in 1..3"
+        raise OctolgpError(f"{name} must have shape {want}, got {arr.shape}")
+    out = np.ascontiguousarray(arr, dtype=np.float64)
+    if not np.isfinite(out).all():
+        raise OctolgpError(f"{name} contains NaN or inf")
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class Scan:
+    """One range scan, in the world frame.
+
+    Parameters
+    ----------
+    origin : array_like of shape (d,)
+        Sensor position in the world frame, metres. ``d`` is 2 or 3.
+    points : array_like of shape (n, d)
+        Beam endpoints in the world frame, metres, ``n >= 1``.
+    max_range : float, optional
+        A beam at least this long is a no-return: free space up to ``max_range``
+        along it and no hit.
+    stamp : float, optional
+        Time, seconds.
+
+    Raises
+    ------
+    OctolgpError
+        On a wrong shape, a non-finite value, an empty scan, or a non-positive
+        ``max_range``.
+    """
+
+    origin: FloatArray
+    points: FloatArray
+    max_range: float | None = None
+    stamp: float | None = None
+
+    def __post_init__(self) -> None:
+        origin = np.asarray(self.origin) if not isinstance(self.origin, np.ndarray) else self.origin
+        if origin.ndim != 1 or origin.shape[0] not in (2, 3):
+            raise OctolgpError(f"Scan.origin must have shape (2,) or (3,), got {origin.shape}")
+        origin = as_points(origin[None, :], "Scan.origin")[0]
+        points = as_points(self.points, "Scan.points", dim=origin.shape[0])
+        if points.shape[0] == 0:
+            raise OctolgpError("Scan.points is empty: a scan needs at least one beam")
+        if self.max_range is not None:
+            mr = self.max_range
+            if isinstance(mr, bool) or not isinstance(mr, int | float | np.floating | np.integer):
+                raise OctolgpError(f"Scan.max_range must be a number, got {mr!r}")
+            if not np.isfinite(mr) or mr <= 0:
+                raise OctolgpError(f"Scan.max_range must be finite and > 0, got {mr!r}")
+            object.__setattr__(self, "max_range", float(mr))
+        if self.stamp is not None:
+            st = self.stamp
+            if isinstance(st, bool) or not isinstance(st, int | float | np.floating | np.integer):
+                raise OctolgpError(f"Scan.stamp must be a number, got {st!r}")
+            if not np.isfinite(st):
+                raise OctolgpError(f"Scan.stamp must be finite, got {st!r}")
+            object.__setattr__(self, "stamp", float(st))
+        origin.setflags(write=False)
+        points.setflags(write=False)
+        object.__setattr__(self, "origin", origin)
+        object.__setattr__(self, "points", points)
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension, 2 or 3."""
+        return int(self.origin.shape[0])
+
+    def __len__(self) -> int:
+        return int(self.points.shape[0])
+
+    @classmethod
+    def from_ranges(
+        cls,
+        pose: ArrayLike,
+        ranges: ArrayLike,
+        angles: ArrayLike,
+        max_range: float | None = None,
+        stamp: float | None = None,
+    ) -> Scan:
+        """Build a 2D scan from a planar laser's ranges.
+
+        Parameters
+        ----------
+        pose : array_like of shape (3,)
+            Laser pose ``(x, y, theta)`` in the world frame: metres, radians CCW.
+        ranges : array_like of shape (n,)
+            Ranges, metres.
+        angles : array_like of shape (n,)
+            Beam angles in the laser frame, radians CCW from its x axis.
+        max_range : float, optional
+            No-return threshold, metres.
+        stamp : float, optional
+            Time, seconds.
+
+        Raises
+        ------
+        OctolgpError
+            On mismatched shapes, non-finite values or negative ranges.
+        """
+        p = np.asarray(pose, dtype=np.float64)
+        r = np.asarray(ranges, dtype=np.float64)
+        a = np.asarray(angles, dtype=np.float64)
+        if p.shape != (3,) or not np.isfinite(p).all():
+            raise OctolgpError(f"Scan.from_ranges: pose must be 3 finite numbers, got {p.shape}")
+        if r.ndim != 1 or a.shape != r.shape:
+            raise OctolgpError(
+                f"Scan.from_ranges: ranges {r.shape} and angles {a.shape} must be equal 1D shapes"
+            )
+        if not (np.isfinite(r).all() and np.isfinite(a).all()):
+            raise OctolgpError("Scan.from_ranges: ranges or angles contain NaN or inf")
+        if (r < 0).any():
+            raise OctolgpError("Scan.from_ranges: ranges must be >= 0")
+        phi = p[2] + a
+        pts = p[:2] + r[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+        return cls(origin=p[:2], points=pts, max_range=max_range, stamp=stamp)
