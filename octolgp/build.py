@@ -1,0 +1,95 @@
+"""Offline batch build: ``build_map(scans, config, method)`` for OM_LGP and baselines."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterable
+from typing import Any
+
+from octolgp.baselines.gp import GlobalGPMap, fit_global_gp
+from octolgp.baselines.mgp import MixtureGPMap, make_gate
+from octolgp.config import MapConfig
+from octolgp.errors import OctolgpError
+from octolgp.gpmap import GPMap
+from octolgp.learning import learn_from_clusters
+from octolgp.lgp import LocalGPMap, fit_clusters
+from octolgp.partition import partition
+from octolgp.scan import Scan
+from octolgp.training import check_scans, make_training_data
+
+METHODS = ("lgp", "gp", "mgp", "ogm")
+
+
+def build_map(
+    scans: Iterable[Scan],
+    config: MapConfig,
+    method: str = "lgp",
+    scheduler: Any = None,
+    n_jobs: int = 1,
+) -> Any:
+    """Build a map offline from all scans at once.
+
+    Parameters
+    ----------
+    scans : iterable of Scan
+        World-frame scans of dimension ``config.dim``.
+    config : MapConfig
+        With ``hyperparameters=None`` they are learnt first (timed as ``learning``).
+    method : {"lgp", "gp", "mgp", "ogm"}
+        ``"lgp"`` the paper's overlapping local GPs; ``"gp"`` one global GP;
+        ``"mgp"`` a mixture of GP experts; ``"ogm"`` a log-odds occupancy grid.
+    scheduler : None
+        Only in-process builds are supported in this version; a non-``None``
+        value raises.
+    n_jobs : int
+        Threads over clusters for ``"lgp"``.
+
+    Returns
+    -------
+    map
+        An object with ``occupancy(points)``, ``latent(points)`` and ``timings``.
+
+    Raises
+    ------
+    OctolgpError
+        On an unknown method, bad scans or a bad config.
+    """
+    if not isinstance(config, MapConfig):
+        raise OctolgpError(f"config must be a MapConfig, got {type(config).__name__}")
+    if method not in METHODS:
+        raise OctolgpError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
+    if scheduler is not None:
+        raise OctolgpError("scheduler: distributed builds are not available in this version")
+    scan_list = check_scans(scans, config.dim)
+    if method == "ogm":
+        from octolgp.baselines.ogm import build_ogm
+
+        return build_ogm(scan_list, config)
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    data = make_training_data(scan_list, config)
+    timings["training_data"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    clusters = partition(data, config, overlap=0.0 if method == "mgp" else None)
+    timings["clustering"] = time.perf_counter() - t0
+    hp = config.hyperparameters
+    t0 = time.perf_counter()
+    if hp is None:
+        hp = learn_from_clusters(data, clusters, config)
+    timings["learning"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    result: GPMap
+    if method == "lgp":
+        gps = fit_clusters(data, clusters, config, hp, n_jobs=n_jobs)
+        result = LocalGPMap(config, hp, clusters=clusters, gps=gps, n_jobs=n_jobs)
+    elif method == "gp":
+        result = GlobalGPMap(config, hp, gp=fit_global_gp(data, config, hp))
+    else:
+        gps = fit_clusters(data, clusters, config, hp, n_jobs=n_jobs)
+        gate = make_gate(data, clusters, config.partition.box_size)
+        result = MixtureGPMap(config, hp, gps=gps, gate=gate)
+    timings["fitting"] = time.perf_counter() - t0
+    result.timings.update(timings)
+    return result

@@ -1,0 +1,142 @@
+"""Hyperparameter learning: kernel by marginal likelihood, PLSC α, β by LOO.
+
+Length scales learnt on one small subset swing widely with the subset, so the log
+marginal likelihood is summed over several clusters spread over the map, which
+share the hyperparameters (each cluster an independent GP). The node layout of
+the integral kernels is fixed during the optimisation (spacing from the initial
+length scale, ``10 × resolution``) so the objective is smooth.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+from scipy.optimize import minimize
+
+from octolgp.config import Hyperparameters, MapConfig
+from octolgp.gpmap import cluster_items, quadrature_spacing
+from octolgp.kernels import QuadratureSet, node_distances, quadrature_set
+from octolgp.local_gp import log_marginal_likelihood, loo_predictions
+from octolgp.partition import Cluster, partition
+from octolgp.plsc import fit_plsc
+from octolgp.scan import FloatArray, Scan
+from octolgp.training import TrainingData, make_training_data
+
+
+def _subsample(
+    data: TrainingData, cluster: Cluster, config: MapConfig, spacing: float, rng: np.random.Generator
+) -> tuple[QuadratureSet, FloatArray]:
+    """A cluster's items, randomly thinned to ``learning.max_items_per_cluster``."""
+    items, y = cluster_items(data, cluster, config, spacing)
+    cap = config.learning.max_items_per_cluster
+    if y.size <= cap:
+        return items, y
+    keep = np.sort(rng.choice(y.size, size=cap, replace=False))
+    ends = np.append(items.starts[1:], items.n_nodes)
+    counts = ends - items.starts
+    first = items.starts[keep]
+    # rebuild a set from the kept items' nodes (contiguous per item)
+    node_idx = np.repeat(first, counts[keep]) + (
+        np.arange(counts[keep].sum()) - np.repeat(np.cumsum(counts[keep]) - counts[keep], counts[keep])
+    )
+    starts = np.concatenate([[0], np.cumsum(counts[keep])[:-1]]).astype(np.int64)
+    return QuadratureSet(items.nodes[node_idx], items.weights[node_idx], starts), y[keep]
+
+
+def learning_sets(
+    data: TrainingData, clusters: list[Cluster], config: MapConfig, spacing: float
+) -> list[tuple[QuadratureSet, FloatArray]]:
+    """Pick up to ``learning.max_clusters`` clusters spread over the map, thinned."""
+    rng = np.random.default_rng(config.learning.seed)
+    if not clusters:
+        return []
+    k = min(config.learning.max_clusters, len(clusters))
+    # spread: order clusters along their principal direction and take evenly spaced ones
+    centres = np.array([c.centre for c in clusters])
+    axis = np.argmax(np.ptp(centres, axis=0))
+    order = np.argsort(centres[:, axis], kind="stable")
+    chosen = order[np.linspace(0, len(clusters) - 1, k).round().astype(int)]
+    return [_subsample(data, clusters[i], config, spacing, rng) for i in np.unique(chosen)]
+
+
+def fit_kernel(
+    sets: list[tuple[QuadratureSet, FloatArray]], initial: Hyperparameters
+) -> tuple[float, float, float]:
+    """Maximise the summed log marginal likelihood over log-parameters (L-BFGS-B).
+
+    Returns
+    -------
+    length_scale, signal_variance, noise_variance : float
+    """
+    dists = [node_distances(items) for items, _ in sets]
+
+    def objective(theta: FloatArray) -> tuple[float, FloatArray]:
+        value, grad = 0.0, np.zeros(3)
+        for (items, y), R in zip(sets, dists, strict=True):
+            v, g = log_marginal_likelihood(items, y, theta, R)
+            value += v
+            grad += g
+        if not np.isfinite(value):
+            return 1e300, np.zeros(3)
+        return -value, -grad
+
+    x0 = np.log([initial.length_scale, initial.signal_variance, initial.noise_variance])
+    bounds = [(np.log(1e-2), np.log(1e2)), (np.log(1e-2), np.log(1e3)), (np.log(1e-4), np.log(1e2))]
+    best = None
+    for shift in (0.0, np.log(3.0)):  # two starts in the length scale
+        start = x0 + np.array([shift, 0.0, 0.0])
+        res = minimize(objective, start, jac=True, method="L-BFGS-B", bounds=bounds)
+        if best is None or res.fun < best.fun:
+            best = res
+    assert best is not None
+    ell, sf2, sn2 = np.exp(best.x)
+    return float(ell), float(sf2), float(sn2)
+
+
+def learn_from_clusters(
+    data: TrainingData, clusters: list[Cluster], config: MapConfig
+) -> Hyperparameters:
+    """Learn the kernel on several clusters together, then α, β by LOO on the same sets."""
+    initial = Hyperparameters(length_scale=10.0 * config.resolution)
+    spacing = quadrature_spacing(config, initial.length_scale)
+    sets = learning_sets(data, clusters, config, spacing)
+    ell, sf2, sn2 = fit_kernel(sets, initial)
+    hp = Hyperparameters(length_scale=ell, signal_variance=sf2, noise_variance=sn2)
+    spacing = quadrature_spacing(config, ell)
+    sets = learning_sets(data, clusters, config, spacing)
+    mus, vs, ys = [], [], []
+    for items, y in sets:
+        mu, var = loo_predictions(items, y, hp)
+        mus.append(mu)
+        vs.append(var)
+        ys.append(y)
+    alpha, beta = fit_plsc(np.concatenate(mus), np.concatenate(vs), np.concatenate(ys))
+    return Hyperparameters(ell, sf2, sn2, alpha, beta)
+
+
+def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperparameters:
+    """Learn kernel hyperparameters and PLSC α, β from scans.
+
+    Parameters
+    ----------
+    scans : iterable of Scan
+    config : MapConfig
+        ``learning`` chooses the data subset: ``max_clusters`` clusters of at most
+        ``max_items_per_cluster`` items each.
+
+    Returns
+    -------
+    Hyperparameters
+        Pass it on with ``MapConfig(..., hyperparameters=hp)``.
+
+    Raises
+    ------
+    OctolgpError
+        On bad scans.
+    """
+    data = make_training_data(scans, config)
+    return learn_from_clusters(data, partition(data, config), config)
+
+
+__all__ = ["learn_from_clusters", "learn_hyperparameters", "quadrature_set"]

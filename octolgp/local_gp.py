@@ -1,0 +1,167 @@
+"""GP regression on one cluster's items: fit, predict, marginal likelihood and LOO.
+
+The Cholesky steps follow Rasmussen & Williams, *Gaussian Processes for Machine
+Learning* (2006), Algorithm 2.1; leave-one-out follows §5.4.2, eq. (5.12).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import LinAlgError, cho_factor, cho_solve, solve_triangular
+
+from octolgp.config import Hyperparameters
+from octolgp.errors import OctolgpError
+from octolgp.kernels import (
+    QuadratureSet,
+    covariance_with_grad,
+    item_covariance,
+    node_distances,
+    points_set,
+)
+from octolgp.scan import FloatArray
+
+LOG_2PI = float(np.log(2.0 * np.pi))
+
+
+@dataclass(frozen=True)
+class LocalGP:
+    """A fitted GP: training items, Cholesky factor and weight vector.
+
+    Attributes
+    ----------
+    items : QuadratureSet
+        Training items (hits and free segments).
+    L : ndarray of shape (n, n)
+        Lower Cholesky factor of ``K + σn² I``.
+    weights : ndarray of shape (n,)
+        ``(K + σn² I)⁻¹ y`` (R&W Alg. 2.1 line 3).
+    hp : Hyperparameters
+    """
+
+    items: QuadratureSet
+    L: FloatArray
+    weights: FloatArray
+    hp: Hyperparameters
+
+
+def _cholesky(K: FloatArray) -> FloatArray:
+    """Lower Cholesky factor with a hint on failure (R&W Alg. 2.1 line 2)."""
+    try:
+        L, _ = cho_factor(K, lower=True, check_finite=False)
+    except LinAlgError as exc:
+        raise OctolgpError(
+            f"kernel matrix is not positive definite ({exc}); raise "
+            "Hyperparameters.noise_variance or deduplicate the training data"
+        ) from None
+    return np.tril(L)
+
+
+def fit_local_gp(items: QuadratureSet, y: FloatArray, hp: Hyperparameters) -> LocalGP:
+    """Fit GP regression on items with targets ``y``.
+
+    Parameters
+    ----------
+    items : QuadratureSet
+        ``n`` training items.
+    y : ndarray of shape (n,)
+        Targets: +1 for hits, −1 for free segments (segment averages).
+    hp : Hyperparameters
+        Kernel hyperparameters, used as given.
+
+    Returns
+    -------
+    LocalGP
+    """
+    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
+    K[np.diag_indices_from(K)] += hp.noise_variance
+    L = _cholesky(K)
+    weights = cho_solve((L, True), y, check_finite=False)  # R&W Alg. 2.1 line 3
+    return LocalGP(items=items, L=L, weights=weights, hp=hp)
+
+
+def predict_latent(gp: LocalGP, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Latent mean and variance at test points.
+
+    Parameters
+    ----------
+    gp : LocalGP
+    X : ndarray of shape (m, d)
+        Test points, metres, world frame.
+
+    Returns
+    -------
+    mean, var : ndarray of shape (m,)
+        Posterior of the latent ``f`` (the variance excludes the noise).
+    """
+    Ks = item_covariance(points_set(X), gp.items, gp.hp.length_scale, gp.hp.signal_variance)
+    mean = Ks @ gp.weights  # R&W Alg. 2.1 line 4
+    v = solve_triangular(gp.L, Ks.T, lower=True, check_finite=False)  # line 5
+    var = gp.hp.signal_variance - np.einsum("ij,ij->j", v, v)  # line 6, diagonal only
+    return mean, np.maximum(var, 0.0)
+
+
+def log_marginal_likelihood(
+    items: QuadratureSet, y: FloatArray, log_theta: FloatArray, R: FloatArray | None = None
+) -> tuple[float, FloatArray]:
+    """Log marginal likelihood and its gradient in log-parameters.
+
+    Parameters
+    ----------
+    items : QuadratureSet
+    y : ndarray of shape (n,)
+    log_theta : ndarray of shape (3,)
+        ``log`` of (length_scale, signal_variance, noise_variance).
+    R : ndarray of shape (N, N), optional
+        Node distances (:func:`octolgp.kernels.node_distances`), to reuse.
+
+    Returns
+    -------
+    value : float
+        ``−½ yᵀα − Σ log L_ii − n/2 log 2π`` (R&W Alg. 2.1 line 7).
+    grad : ndarray of shape (3,)
+        ``½ tr((ααᵀ − K⁻¹) ∂K/∂θ_j)`` (R&W eq. 5.9).
+    """
+    ell, sf2, sn2 = np.exp(log_theta)
+    R = node_distances(items) if R is None else R
+    K, dK_dlogl = covariance_with_grad(items, R, float(ell), float(sf2))
+    Kf = K.copy()
+    K[np.diag_indices_from(K)] += sn2
+    try:
+        L, _ = cho_factor(K, lower=True, check_finite=False)
+    except LinAlgError:
+        return -np.inf, np.zeros(3)
+    alpha = cho_solve((L, True), y, check_finite=False)
+    n = y.shape[0]
+    value = -0.5 * float(y @ alpha) - float(np.log(np.diag(L)).sum()) - 0.5 * n * LOG_2PI
+    inner = np.outer(alpha, alpha) - cho_solve((L, True), np.eye(n), check_finite=False)
+    grad = 0.5 * np.array(
+        [
+            np.einsum("ij,ji->", inner, dK_dlogl),
+            np.einsum("ij,ji->", inner, Kf),  # ∂K/∂log σf² = K_f
+            sn2 * np.trace(inner),  # ∂K/∂log σn² = σn² I
+        ]
+    )
+    return value, grad
+
+
+def loo_predictions(
+    items: QuadratureSet, y: FloatArray, hp: Hyperparameters
+) -> tuple[FloatArray, FloatArray]:
+    """Closed-form leave-one-out predictive means and variances.
+
+    R&W eq. (5.12): ``μ_i = y_i − [K⁻¹y]_i / [K⁻¹]_ii`` and ``σ_i² = 1 / [K⁻¹]_ii``,
+    with ``K`` including the noise, so ``σ_i²`` is the predictive variance of a noisy
+    observation of item ``i``.
+
+    Returns
+    -------
+    mean, var : ndarray of shape (n,)
+    """
+    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
+    K[np.diag_indices_from(K)] += hp.noise_variance
+    L = _cholesky(K)
+    Kinv = cho_solve((L, True), np.eye(y.shape[0]), check_finite=False)
+    diag = np.diag(Kinv)
+    return y - (Kinv @ y) / diag, 1.0 / diag

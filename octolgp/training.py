@@ -1,0 +1,144 @@
+"""Scan → training data: a hit point (target +1) and a free segment (target −1) per beam.
+
+The free segment runs from the sensor to ``free_margin`` metres short of the hit
+(one resolution by default) so that it does not cancel the hit. A no-return beam
+(length >= ``Scan.max_range``) gives a free segment to ``max_range`` and no hit.
+Segment targets follow the *average* formulation of the integral kernel (see
+:mod:`octolgp.kernels`): the mean of the latent function along a free segment is −1.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from octolgp.config import MapConfig
+from octolgp.errors import OctolgpError
+from octolgp.scan import FloatArray, Scan
+
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class TrainingData:
+    """Hits and free segments in the world frame.
+
+    Attributes
+    ----------
+    hits : ndarray of shape (h, d)
+        Hit points, metres. Target +1.
+    seg_start, seg_end : ndarray of shape (s, d)
+        Free segments, metres. Target −1 (mean of the latent along the segment).
+    seg_hit : ndarray of shape (s,)
+        Index into ``hits`` of the hit that ends each segment's beam, −1 for a
+        no-return.
+    """
+
+    hits: FloatArray
+    seg_start: FloatArray
+    seg_end: FloatArray
+    seg_hit: IntArray
+
+    @property
+    def dim(self) -> int:
+        """Spatial dimension."""
+        return int(self.hits.shape[1])
+
+    @property
+    def n_items(self) -> int:
+        """Number of training items (hits plus segments)."""
+        return int(self.hits.shape[0] + self.seg_start.shape[0])
+
+
+def check_scans(scans: Iterable[Scan], dim: int) -> list[Scan]:
+    """Materialise and type-check scans against the map dimension.
+
+    Raises
+    ------
+    OctolgpError
+        If an item is not a :class:`Scan`, the dimensions differ from ``dim`` or
+        there are no scans.
+    """
+    out = list(scans) if not isinstance(scans, Scan) else [scans]
+    if not out:
+        raise OctolgpError("scans is empty: need at least one Scan")
+    for i, scan in enumerate(out):
+        if not isinstance(scan, Scan):
+            raise OctolgpError(f"scans[{i}] must be a Scan, got {type(scan).__name__}")
+        if scan.dim != dim:
+            raise OctolgpError(f"scans[{i}] is {scan.dim}D but MapConfig.dim is {dim}")
+    return out
+
+
+def _first_per_voxel(points: FloatArray, resolution: float) -> tuple[IntArray, IntArray]:
+    """Indices of the first point in each voxel, and each point's kept index."""
+    keys = np.floor(points / resolution).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")  # keep original (time) order
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return first[order].astype(np.int64), rank[inverse.ravel()].astype(np.int64)
+
+
+def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData:
+    """Turn scans into hits and free segments, deduplicated per voxel and class.
+
+    Parameters
+    ----------
+    scans : iterable of Scan
+        World-frame scans of dimension ``config.dim``.
+    config : MapConfig
+        Uses ``resolution``, ``free_margin`` and ``training.dedup``.
+
+    Returns
+    -------
+    TrainingData
+
+    Raises
+    ------
+    OctolgpError
+        On an empty sequence or a dimension mismatch.
+    """
+    scan_list = check_scans(scans, config.dim)
+    counts = np.array([len(s) for s in scan_list])
+    origins = np.repeat(np.stack([s.origin for s in scan_list]), counts, axis=0)
+    ends = np.concatenate([s.points for s in scan_list])
+    max_range = np.repeat(
+        np.array([np.inf if s.max_range is None else s.max_range for s in scan_list]), counts
+    )
+    vec = ends - origins
+    length = np.linalg.norm(vec, axis=1)
+    valid = length > 1e-9  # an endpoint on the sensor carries no direction
+    no_return = valid & (length >= max_range)
+    is_hit = valid & ~no_return
+    direction = np.zeros_like(vec)
+    direction[valid] = vec[valid] / length[valid, None]
+
+    # Free segment: to max_range for no-returns, else stop free_margin short of the hit.
+    free_len = np.where(no_return, np.minimum(length, max_range), length - config.free_margin)
+    has_seg = valid & (free_len > 1e-9)
+    hit_index = np.full(length.shape, -1, dtype=np.int64)
+    hit_index[is_hit] = np.arange(int(is_hit.sum()))
+    hits = ends[is_hit]
+    seg_start = origins[has_seg]
+    seg_end = origins[has_seg] + direction[has_seg] * free_len[has_seg, None]
+    seg_hit = hit_index[has_seg]
+
+    if config.training.dedup:
+        # Balance the classes: one hit per voxel, one segment per voxel of its end.
+        if hits.shape[0]:
+            keep_hit, hit_rank = _first_per_voxel(hits, config.resolution)
+            hits = hits[keep_hit]
+            seg_hit = np.where(seg_hit >= 0, hit_rank[np.maximum(seg_hit, 0)], -1)
+        if seg_end.shape[0]:
+            keep_seg, _ = _first_per_voxel(seg_end, config.resolution)
+            seg_start, seg_end, seg_hit = seg_start[keep_seg], seg_end[keep_seg], seg_hit[keep_seg]
+    return TrainingData(
+        hits=np.ascontiguousarray(hits, dtype=np.float64),
+        seg_start=np.ascontiguousarray(seg_start, dtype=np.float64),
+        seg_end=np.ascontiguousarray(seg_end, dtype=np.float64),
+        seg_hit=seg_hit.astype(np.int64),
+    )
