@@ -6,6 +6,8 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
+from threadpoolctl import threadpool_limits
+
 from octolgp.baselines.gp import GlobalGPMap, fit_global_gp
 from octolgp.baselines.mgp import MixtureGPMap, make_gate
 from octolgp.config import MapConfig
@@ -66,6 +68,13 @@ def build_map(
 
         return build_ogm(scan_list, config)
 
+    # Local GPs are small: one BLAS/OpenMP thread each, parallelism across clusters.
+    with threadpool_limits(limits=1 if method != "gp" else None):
+        return _build_gp_map(scan_list, config, method, n_jobs)
+
+
+def _build_gp_map(scan_list: list[Scan], config: MapConfig, method: str, n_jobs: int) -> GPMap:
+    """Training data, clustering, learning (if needed) and fitting, each timed."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     data = make_training_data(scan_list, config)

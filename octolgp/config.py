@@ -134,7 +134,7 @@ class PartitionConfig:
     """
 
     box_size: float = 10.0
-    max_cluster_size: int = 400
+    max_cluster_size: int = 200
     overlap: float = 0.2
     seed: int = 0
 
@@ -160,13 +160,24 @@ class LearningConfig:
         Each chosen cluster is randomly subsampled to at most this many items.
     seed : int
         Seed for the choice of clusters and items.
+    objective : {"lml+loo", "lml"}
+        ``"lml"``: the kernel by log marginal likelihood, then α, β by the LOO
+        predictive probability (R&W §6.5). ``"lml+loo"`` (default) then refines all
+        five jointly by the LOO predictive probability, starting from that point:
+        the likelihood alone favours near-interpolating noise levels on occupancy
+        data, which over-confident maps punish.
     """
 
     max_clusters: int = 8
-    max_items_per_cluster: int = 400
+    max_items_per_cluster: int = 300
     seed: int = 0
+    objective: str = "lml+loo"
 
     def __post_init__(self) -> None:
+        if self.objective not in ("lml+loo", "lml"):
+            raise OctolgpError(
+                f"LearningConfig.objective must be 'lml+loo' or 'lml', got {self.objective!r}"
+            )
         _integer("LearningConfig", "max_clusters", self.max_clusters, 1)
         _integer("LearningConfig", "max_items_per_cluster", self.max_items_per_cluster, 4)
         _integer("LearningConfig", "seed", self.seed, 0)

@@ -36,12 +36,11 @@ def cluster_items(
     Returns
     -------
     items : QuadratureSet
-        Hits, then free segments of those hits, then clipped no-returns.
+        Hits, then free pieces.
     y : ndarray of shape (n,)
     """
     tc = config.training
-    seg_start = np.concatenate([data.seg_start[cluster.segments], cluster.nr_start])
-    seg_end = np.concatenate([data.seg_end[cluster.segments], cluster.nr_end])
+    seg_start, seg_end = cluster.seg_start, cluster.seg_end
     items = quadrature_set(
         data.hits[cluster.hits],
         seg_start,

@@ -1,5 +1,8 @@
 """Hyperparameter learning: kernel by marginal likelihood, PLSC α, β by LOO.
 
+With ``LearningConfig.objective == "lml+loo"`` (default) all five are then refined
+jointly by the LOO predictive probability of PLSC (R&W §6.5, eq. 5.13 gradients).
+
 Length scales learnt on one small subset swing widely with the subset, so the log
 marginal likelihood is summed over several clusters spread over the map, which
 share the hyperparameters (each cluster an independent GP). The node layout of
@@ -17,7 +20,7 @@ from scipy.optimize import minimize
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gpmap import cluster_items, quadrature_spacing
 from octolgp.kernels import QuadratureSet, node_distances, quadrature_set
-from octolgp.local_gp import log_marginal_likelihood, loo_predictions
+from octolgp.local_gp import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.partition import Cluster, partition
 from octolgp.plsc import fit_plsc
 from octolgp.scan import FloatArray, Scan
@@ -112,7 +115,47 @@ def learn_from_clusters(
         vs.append(var)
         ys.append(y)
     alpha, beta = fit_plsc(np.concatenate(mus), np.concatenate(vs), np.concatenate(ys))
-    return Hyperparameters(ell, sf2, sn2, alpha, beta)
+    hp = Hyperparameters(ell, sf2, sn2, alpha, beta)
+    if config.learning.objective == "lml+loo":
+        hp = refine_by_loo(sets, hp)
+    return hp
+
+
+def refine_by_loo(
+    sets: list[tuple[QuadratureSet, FloatArray]], start: Hyperparameters
+) -> Hyperparameters:
+    """Maximise the summed LOO log predictive probability over all five parameters."""
+    dists = [node_distances(items) for items, _ in sets]
+
+    def objective(x: FloatArray) -> tuple[float, FloatArray]:
+        value, grad = 0.0, np.zeros(5)
+        for (items, y), R in zip(sets, dists, strict=True):
+            v, g = loo_log_predictive(items, y, x, R)
+            value += v
+            grad += g
+        if not np.isfinite(value):
+            return 1e300, np.zeros(5)
+        return -value, -grad
+
+    x0 = np.array(
+        [
+            np.log(start.length_scale),
+            np.log(start.signal_variance),
+            np.log(start.noise_variance),
+            start.alpha,
+            start.beta,
+        ]
+    )
+    bounds = [
+        (np.log(1e-2), np.log(1e2)),
+        (np.log(1e-2), np.log(1e3)),
+        (np.log(1e-4), np.log(1e2)),
+        (1e-3, 1e3),
+        (-1e2, 1e2),
+    ]
+    res = minimize(objective, x0, jac=True, method="L-BFGS-B", bounds=bounds)
+    ell, sf2, sn2 = np.exp(res.x[:3])
+    return Hyperparameters(float(ell), float(sf2), float(sn2), float(res.x[3]), float(res.x[4]))
 
 
 def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperparameters:

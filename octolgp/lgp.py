@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gpmap import GPMap, cluster_items, quadrature_spacing
@@ -59,6 +60,10 @@ class LocalGPMap(GPMap):
         self._tree = cKDTree(centres)
 
     def _latent(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
+        with threadpool_limits(limits=1):
+            return self._latent_nearest(X)
+
+    def _latent_nearest(self, X: FloatArray) -> tuple[FloatArray, FloatArray]:
         mean = np.zeros(X.shape[0])
         var = np.full(X.shape[0], self.hyperparameters.signal_variance)
         if not self.gps or X.shape[0] == 0:

@@ -1,16 +1,18 @@
 """Partitioning (Kim & Kim §III-B): coarse boxes, iterative k-means, overlap.
 
 1. Hits are split into coarse boxes of edge ``box_size``.
-2. Within a box, k-means (scikit-learn) clusters the hits into
-   ``ceil(items / max_cluster_size)`` groups, and is repeated on any cluster whose
-   own items (hits plus the free segments that end at them) exceed the cap.
-3. Each cluster is *extended*: its hit bounding box grows by ``overlap`` times its
-   extent on every side, and every hit inside (with its free segment) joins its
-   training set, so neighbouring local GPs share data at their borders.
-   No-return segments join each cluster whose extended box they cross, clipped
-   to it. Free segments of hits stay whole: they carry the free space between the
-   sensor and the cluster.
-4. A test point is predicted by the cluster with the nearest centre.
+2. Within a box, k-means (scikit-learn) clusters the hits, and is repeated on any
+   cluster whose own items (each hit plus the free segment ending at it) exceed
+   ``max_cluster_size``.
+3. A test point is predicted by the cluster with the nearest centre, so a cluster
+   answers for its Voronoi cell. Its *region* is the bounding box of its hits and of
+   its Voronoi cell within the data's bounding box (found on a lattice), grown by
+   ``overlap`` times its extent on every side. Its training set is every hit in the
+   region and every free segment that crosses it, clipped to it (a piece of a free
+   segment is free, target −1, in the average formulation of the integral kernel).
+   Neighbouring regions overlap, so neighbouring local GPs share data at their
+   borders; clipping keeps segments short, so few quadrature nodes suffice. Free
+   pieces beyond ``max_cluster_size`` are thinned at random (seeded).
 """
 
 from __future__ import annotations
@@ -37,28 +39,26 @@ class Cluster:
     lo, hi : ndarray of shape (d,)
         Extended box, metres.
     hits : ndarray of shape (h,)
-        Indices into ``TrainingData.hits`` (own and shared).
-    segments : ndarray of shape (s,)
-        Indices into the segments that end at those hits.
-    nr_start, nr_end : ndarray of shape (r, d)
-        No-return segments clipped to the extended box.
+        Indices into ``TrainingData.hits`` of the hits in the region.
+    seg_start, seg_end : ndarray of shape (s, d)
+        Free segments clipped to the region, metres.
     n_own : int
-        Own items before extension (at most the cap, unless one hit's items do).
+        Own items (own hits plus their segments), at most the cap unless one hit
+        alone exceeds it.
     """
 
     centre: FloatArray
     lo: FloatArray
     hi: FloatArray
     hits: IntArray
-    segments: IntArray
-    nr_start: FloatArray
-    nr_end: FloatArray
+    seg_start: FloatArray
+    seg_end: FloatArray
     n_own: int
 
     @property
     def n_items(self) -> int:
-        """Training items: hits, their segments and clipped no-returns."""
-        return int(self.hits.size + self.segments.size + self.nr_start.shape[0])
+        """Training items: hits and free pieces."""
+        return int(self.hits.size + self.seg_start.shape[0])
 
 
 def _kmeans(points: FloatArray, k: int, seed: int) -> IntArray:
@@ -122,6 +122,38 @@ def _clip_to_box(
     return a + t_in[:, None] * d, a + t_out[:, None] * d, keep
 
 
+def voronoi_boxes(
+    centres: FloatArray, lo: FloatArray, hi: FloatArray, cells: int
+) -> tuple[FloatArray, FloatArray]:
+    """Bounding boxes of the nearest-centre cells within ``[lo, hi]``, on a lattice.
+
+    Parameters
+    ----------
+    centres : ndarray of shape (c, d)
+    lo, hi : ndarray of shape (d,)
+        The domain, metres.
+    cells : int
+        Lattice points along the longest axis.
+
+    Returns
+    -------
+    box_lo, box_hi : ndarray of shape (c, d)
+        Per centre; a centre that owns no lattice point gets its own position.
+    """
+    from scipy.spatial import cKDTree
+
+    step = float(np.max(hi - lo)) / max(cells - 1, 1) or 1.0
+    axes = [np.arange(a, b + step, step) for a, b in zip(lo, hi, strict=True)]
+    lattice = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, lo.size)
+    _, owner = cKDTree(centres).query(lattice)
+    box_lo = centres.copy()
+    box_hi = centres.copy()
+    np.minimum.at(box_lo, owner, lattice)
+    np.maximum.at(box_hi, owner, lattice)
+    # a lattice point stands for a cell of edge ``step``
+    return box_lo - step / 2.0, box_hi + step / 2.0
+
+
 def partition(data: TrainingData, config: MapConfig, overlap: float | None = None) -> list[Cluster]:
     """Partition training data into overlapping clusters.
 
@@ -132,7 +164,7 @@ def partition(data: TrainingData, config: MapConfig, overlap: float | None = Non
         Uses ``partition.box_size``, ``max_cluster_size``, ``overlap``, ``seed``
         and ``resolution``.
     overlap : float, optional
-        Overrides ``config.partition.overlap`` (0 gives disjoint clusters).
+        Overrides ``config.partition.overlap`` (0 gives regions that only touch).
 
     Returns
     -------
@@ -158,39 +190,36 @@ def partition(data: TrainingData, config: MapConfig, overlap: float | None = Non
         for g in split_under_cap(hits[members], weight[members], pc.max_cluster_size, pc.seed):
             groups.append(members[g])
 
-    # segments sorted by their hit, for gathering by hit index
-    seg_idx = np.flatnonzero(own_seg)
-    seg_idx = seg_idx[np.argsort(data.seg_hit[seg_idx], kind="stable")]
-    seg_ptr = np.searchsorted(data.seg_hit[seg_idx], np.arange(hits.shape[0] + 1))
-    nr = np.flatnonzero(~own_seg)
+    # 3. regions: hit boxes and Voronoi cells in the data's bounding box, grown by overlap
+    centres = np.array([hits[g].mean(axis=0) for g in groups])
+    everything = np.concatenate([hits, data.seg_start, data.seg_end])
+    dom_lo, dom_hi = everything.min(axis=0), everything.max(axis=0)
+    cells = 256 if data.dim == 2 else 48
+    vor_lo, vor_hi = voronoi_boxes(centres, dom_lo, dom_hi, cells)
     min_extent = 2.0 * config.resolution
-
+    min_piece = 0.5 * config.resolution
+    rng = np.random.default_rng(pc.seed)
     clusters = []
-    for g in groups:  # one iteration per cluster
-        lo, hi = hits[g].min(axis=0), hits[g].max(axis=0)
+    for k, g in enumerate(groups):  # one iteration per cluster
+        lo = np.minimum(hits[g].min(axis=0), vor_lo[k])
+        hi = np.maximum(hits[g].max(axis=0), vor_hi[k])
         margin = frac * np.maximum(hi - lo, min_extent)
         lo, hi = lo - margin, hi + margin
-        # 3. extension: every hit inside the extended box, with its segments
-        inside = np.flatnonzero(((hits >= lo) & (hits <= hi)).all(axis=1)) if frac > 0 else g
+        inside = np.flatnonzero(((hits >= lo) & (hits <= hi)).all(axis=1))
         inside = np.union1d(inside, g)
-        counts = seg_ptr[inside + 1] - seg_ptr[inside]
-        rep = np.repeat(seg_ptr[inside], counts)
-        offs = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
-        segs = seg_idx[rep + offs]
-        if nr.size:
-            s, e, keep = _clip_to_box(data.seg_start[nr], data.seg_end[nr], lo, hi)
-            s, e = s[keep], e[keep]
-        else:
-            s = e = np.zeros((0, hits.shape[1]))
+        s, e, keep = _clip_to_box(data.seg_start, data.seg_end, lo, hi)
+        keep &= np.linalg.norm(e - s, axis=1) > min_piece
+        pieces = np.flatnonzero(keep)
+        if pieces.size > pc.max_cluster_size:
+            pieces = np.sort(rng.choice(pieces, pc.max_cluster_size, replace=False))
         clusters.append(
             Cluster(
-                centre=hits[g].mean(axis=0),
+                centre=centres[k],
                 lo=lo,
                 hi=hi,
                 hits=inside.astype(np.int64),
-                segments=segs.astype(np.int64),
-                nr_start=s,
-                nr_end=e,
+                seg_start=s[pieces],
+                seg_end=e[pieces],
                 n_own=int(weight[g].sum()),
             )
         )

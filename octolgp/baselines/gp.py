@@ -15,9 +15,7 @@ from octolgp.training import TrainingData
 
 
 def whole_data_cluster(data: TrainingData) -> Cluster:
-    """A single cluster holding every training item (no-returns whole)."""
-    nr = data.seg_hit < 0
-    d = data.dim
+    """A single cluster holding every training item, segments whole."""
     lo = np.concatenate([data.hits, data.seg_start, data.seg_end]).min(axis=0)
     hi = np.concatenate([data.hits, data.seg_start, data.seg_end]).max(axis=0)
     return Cluster(
@@ -25,9 +23,8 @@ def whole_data_cluster(data: TrainingData) -> Cluster:
         lo=lo,
         hi=hi,
         hits=np.arange(data.hits.shape[0], dtype=np.int64),
-        segments=np.flatnonzero(~nr).astype(np.int64),
-        nr_start=data.seg_start[nr].reshape(-1, d),
-        nr_end=data.seg_end[nr].reshape(-1, d),
+        seg_start=data.seg_start,
+        seg_end=data.seg_end,
         n_own=data.n_items,
     )
 
