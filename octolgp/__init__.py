@@ -12,7 +12,10 @@ from octolgp.config import (
     PartitionConfig,
     TrainingConfig,
 )
+from octolgp.build import build_map
 from octolgp.errors import OctolgpError
+from octolgp.io import load_scans
+from octolgp.learning import learn_hyperparameters
 from octolgp.scan import Scan
 
 __version__ = "0.1.0"
@@ -27,4 +30,7 @@ __all__ = [
     "Scan",
     "TrainingConfig",
     "__version__",
+    "build_map",
+    "learn_hyperparameters",
+    "load_scans",
 ]

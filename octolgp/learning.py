@@ -16,10 +16,11 @@ from collections.abc import Iterable
 
 import numpy as np
 from scipy.optimize import minimize
+from threadpoolctl import threadpool_limits
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gpmap import cluster_items, quadrature_spacing
-from octolgp.kernels import QuadratureSet, node_distances, quadrature_set
+from octolgp.kernels import QuadratureSet, node_distances
 from octolgp.local_gp import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.partition import Cluster, partition
 from octolgp.plsc import fit_plsc
@@ -179,7 +180,6 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
         On bad scans.
     """
     data = make_training_data(scans, config)
-    return learn_from_clusters(data, partition(data, config), config)
+    with threadpool_limits(limits=1):  # small matrices: one BLAS thread is fastest
+        return learn_from_clusters(data, partition(data, config), config)
 
-
-__all__ = ["learn_from_clusters", "learn_hyperparameters", "quadrature_set"]

@@ -183,6 +183,7 @@ def simulate_paper2d(
     noise: bool = True,
     n_poses: int = 28,
     n_beams: int = 47,
+    fov: float = float(2 * np.pi),
     max_range: float = 30.0,
     position_noise_std: float = 0.1,
     heading_noise_std: float = float(np.deg2rad(2.0)),
@@ -191,8 +192,9 @@ def simulate_paper2d(
     """Simulate the 2D experiment of Kim & Kim 2013 (Fig. 3) with ground truth.
 
     The robot drives a path through the free space of a 22 m x 18 m world; at each
-    of ``n_poses`` poses a 360° laser casts ``n_beams`` beams (28 x 47 = 1,316
-    observations by default). Ranges are cast from the TRUE pose, then projected
+    of ``n_poses`` poses a laser with field of view ``fov`` (360° by default;
+    ``pi`` gives a forward SICK-style fan) casts ``n_beams`` beams (28 x 47 = 1,316 observations
+    by default). Ranges are cast from the TRUE pose, then projected
     through the NOISY pose, as a SLAM front end would believe it.
 
     Parameters
@@ -203,6 +205,8 @@ def simulate_paper2d(
         ``False`` gives exact poses and ranges: every endpoint on an obstacle face.
     n_poses, n_beams : int
         Poses along the path and beams per scan.
+    fov : float
+        Field of view, radians, centred on the heading; ``2 * pi`` is a full circle.
     max_range : float
         No-return range, metres; beams hitting nothing (none in the closed world)
         are returned at ``max_range`` and marked no-return by ``Scan.max_range``.
@@ -224,7 +228,10 @@ def simulate_paper2d(
     rng = np.random.default_rng(seed)
     obstacles = _PAPER2D_CELLS * PAPER2D_RESOLUTION
     true_poses = _path_poses(_PAPER2D_PATH, n_poses)
-    angles = np.linspace(-np.pi, np.pi, n_beams, endpoint=False)
+    if fov >= 2 * np.pi:
+        angles = np.linspace(-np.pi, np.pi, n_beams, endpoint=False)
+    else:  # a fan that includes both ends
+        angles = np.linspace(-fov / 2.0, fov / 2.0, n_beams)
 
     # Ray casting from the true poses, all beams at once.
     phi = (true_poses[:, 2:3] + angles).ravel()

@@ -19,7 +19,7 @@ from sklearn.metrics import roc_auc_score, roc_curve
 
 from octolgp.bench.fig2 import Fig2Result, run_fig2
 from octolgp.build import build_map
-from octolgp.config import Hyperparameters, MapConfig
+from octolgp.config import Hyperparameters, MapConfig, PartitionConfig
 from octolgp.learning import learn_hyperparameters
 from octolgp.simulate import simulate_paper2d
 
@@ -29,7 +29,7 @@ PAPER_HP = {"l": 2.66, "sigma_f": 2.81, "sigma_n": 0.99, "alpha": 7.94, "beta": 
 
 def paper2d_config() -> MapConfig:
     """The configuration used for the paper's 2D simulation (0.2 m grid)."""
-    return MapConfig(dim=2, resolution=0.2)
+    return MapConfig(dim=2, resolution=0.2, partition=PartitionConfig(max_cluster_size=100))
 
 
 @dataclass(frozen=True)
