@@ -4,6 +4,7 @@ Kim & Kim, "Continuous Occupancy Maps using Overlapping Local Gaussian Processes
 IROS 2013, made online and OctoMap-style.
 """
 
+from octolgp.build import build_map
 from octolgp.config import (
     Hyperparameters,
     LearningConfig,
@@ -12,7 +13,6 @@ from octolgp.config import (
     PartitionConfig,
     TrainingConfig,
 )
-from octolgp.build import build_map
 from octolgp.errors import OctolgpError
 from octolgp.io import load_scans
 from octolgp.learning import learn_hyperparameters

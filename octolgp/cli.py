@@ -31,7 +31,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     save_scan_log(out, data.scans, data.truth_points, data.truth_labels)
     n = sum(len(s) for s in data.scans)
-    print(f"wrote {out}: {len(data.scans)} scans, {n} beams, {data.truth_points.shape[0]} test points")
+    print(
+        f"wrote {out}: {len(data.scans)} scans, {n} beams, {data.truth_points.shape[0]} test points"
+    )
     return 0
 
 
@@ -39,7 +41,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from octolgp.bench.paper2d import format_table, run_paper2d
 
     out = Path(args.out)
-    result = run_paper2d(out, seed=args.seed, repeats=args.repeats)
+    result = run_paper2d(out, seed=args.seed, repeats=args.repeats, n_seeds=args.seeds)
     table = format_table(result)
     print(table)
     (out / "table2.txt").write_text(table + "\n")
@@ -70,6 +72,7 @@ def make_parser() -> argparse.ArgumentParser:
     bench.add_argument("--out", default="bench_out", help="folder for the table and figures")
     bench.add_argument("--seed", type=int, default=0)
     bench.add_argument("--repeats", type=int, default=5, help="timing runs per method")
+    bench.add_argument("--seeds", type=int, default=5, help="simulated data sets for the AUC")
     bench.set_defaults(func=_cmd_bench)
     return parser
 

@@ -110,7 +110,9 @@ class TrainingConfig:
         _positive("TrainingConfig", "quadrature_spacing", self.quadrature_spacing)
         _integer("TrainingConfig", "min_quadrature_nodes", self.min_quadrature_nodes, 2)
         _integer(
-            "TrainingConfig", "max_quadrature_nodes", self.max_quadrature_nodes,
+            "TrainingConfig",
+            "max_quadrature_nodes",
+            self.max_quadrature_nodes,
             self.min_quadrature_nodes,
         )
 
@@ -272,7 +274,9 @@ class MapConfig:
         """Return the config as nested plain dicts (``None`` values dropped, TOML-ready)."""
 
         def strip(d: dict[str, Any]) -> dict[str, Any]:
-            return {k: strip(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None}
+            return {
+                k: strip(v) if isinstance(v, dict) else v for k, v in d.items() if v is not None
+            }
 
         return strip(dataclasses.asdict(self))
 

@@ -66,7 +66,9 @@ def clenshaw_curtis(n: int) -> tuple[FloatArray, FloatArray]:
     k = np.arange(1, N // 2 + 1)
     b = np.where(2 * k == N, 1.0, 2.0)
     c = np.where((j == 0) | (j == N), 1.0, 2.0)
-    s = (b[None, :] / (4.0 * k[None, :] ** 2 - 1.0) * np.cos(2.0 * k[None, :] * theta[:, None])).sum(1)
+    s = (
+        b[None, :] / (4.0 * k[None, :] ** 2 - 1.0) * np.cos(2.0 * k[None, :] * theta[:, None])
+    ).sum(1)
     weights = c / N * (1.0 - s) / 2.0
     return nodes, weights
 

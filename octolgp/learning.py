@@ -29,7 +29,11 @@ from octolgp.training import TrainingData, make_training_data
 
 
 def _subsample(
-    data: TrainingData, cluster: Cluster, config: MapConfig, spacing: float, rng: np.random.Generator
+    data: TrainingData,
+    cluster: Cluster,
+    config: MapConfig,
+    spacing: float,
+    rng: np.random.Generator,
 ) -> tuple[QuadratureSet, FloatArray]:
     """A cluster's items, randomly thinned to ``learning.max_items_per_cluster``."""
     items, y = cluster_items(data, cluster, config, spacing)
@@ -42,7 +46,8 @@ def _subsample(
     first = items.starts[keep]
     # rebuild a set from the kept items' nodes (contiguous per item)
     node_idx = np.repeat(first, counts[keep]) + (
-        np.arange(counts[keep].sum()) - np.repeat(np.cumsum(counts[keep]) - counts[keep], counts[keep])
+        np.arange(counts[keep].sum())
+        - np.repeat(np.cumsum(counts[keep]) - counts[keep], counts[keep])
     )
     starts = np.concatenate([[0], np.cumsum(counts[keep])[:-1]]).astype(np.int64)
     return QuadratureSet(items.nodes[node_idx], items.weights[node_idx], starts), y[keep]
@@ -182,4 +187,3 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
     data = make_training_data(scans, config)
     with threadpool_limits(limits=1):  # small matrices: one BLAS thread is fastest
         return learn_from_clusters(data, partition(data, config), config)
-

@@ -66,7 +66,7 @@ def _kmeans(points: FloatArray, k: int, seed: int) -> IntArray:
     if k <= 1 or points.shape[0] <= k:
         return np.minimum(np.arange(points.shape[0]), max(k - 1, 0)).astype(np.int64)
     km = KMeans(n_clusters=k, n_init=1, random_state=seed, max_iter=100, tol=1e-4)
-    return km.fit_predict(points).astype(np.int64)
+    return np.asarray(km.fit_predict(points), dtype=np.int64)
 
 
 def split_under_cap(points: FloatArray, weight: IntArray, cap: int, seed: int) -> list[IntArray]:

@@ -31,7 +31,7 @@ def as_points(value: object, name: str, dim: int | None = None) -> FloatArray:
     """
     try:
         arr = np.asarray(value)
-    except Exception as exc:  # noqa: BLE001 - anything numpy cannot coerce
+    except Exception as exc:
         raise OctolgpError(f"{name} is not an array: {exc}") from None
     if arr.dtype.kind not in "iuf":
         raise OctolgpError(f"{name} must be numeric, got dtype {arr.dtype}")

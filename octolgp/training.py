@@ -62,7 +62,7 @@ def check_scans(scans: Iterable[Scan], dim: int) -> list[Scan]:
         If an item is not a :class:`Scan`, the dimensions differ from ``dim`` or
         there are no scans.
     """
-    out = list(scans) if not isinstance(scans, Scan) else [scans]
+    out: list[Scan] = [scans] if isinstance(scans, Scan) else list(scans)
     if not out:
         raise OctolgpError("scans is empty: need at least one Scan")
     for i, scan in enumerate(out):

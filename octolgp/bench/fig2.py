@@ -8,6 +8,7 @@ jump. The jump at a border ``b`` between clusters ``i`` and ``i + 1`` is
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,7 +39,7 @@ def _local_gps(
     X: FloatArray, y: FloatArray, edges: FloatArray, overlap: float, hp: Hyperparameters
 ) -> list[LocalGP]:
     gps = []
-    for lo, hi in zip(edges[:-1], edges[1:], strict=True):  # one GP per cluster
+    for lo, hi in itertools.pairwise(edges):  # one GP per cluster
         margin = overlap * (hi - lo)
         m = (X[:, 0] >= lo - margin) & (X[:, 0] <= hi + margin)
         gps.append(fit_local_gp(points_set(X[m]), y[m], hp))
@@ -83,8 +84,15 @@ def run_fig2(
     overlapping = _local_gps(X, y, edges, overlap, hp)
 
     def jump(gps: list[LocalGP]) -> float:
-        left = np.array([predict_latent(gps[i], borders[i : i + 1, None])[0][0] for i in range(len(borders))])
-        right = np.array([predict_latent(gps[i + 1], borders[i : i + 1, None])[0][0] for i in range(len(borders))])
+        left = np.array(
+            [predict_latent(gps[i], borders[i : i + 1, None])[0][0] for i in range(len(borders))]
+        )
+        right = np.array(
+            [
+                predict_latent(gps[i + 1], borders[i : i + 1, None])[0][0]
+                for i in range(len(borders))
+            ]
+        )
         return float(np.mean(np.abs(left - right)))
 
     mu_dis = _predict_nearest(disjoint, edges, xs)

@@ -1,0 +1,73 @@
+"""End to end: the CLI and the paper benchmark on small inputs."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from octolgp.bench.fig2 import run_fig2
+from octolgp.cli import main
+from octolgp.io import load_scans, read_truth
+
+
+def test_simulate_writes_scan_log_with_truth(tmp_path: Path) -> None:
+    out = tmp_path / "p.npz"
+    assert main(["simulate", "paper2d", "--out", str(out), "--seed", "3"]) == 0
+    scans = list(load_scans(out))
+    assert len(scans) == 28
+    assert 1200 <= sum(len(s) for s in scans) <= 1400
+    points, labels = read_truth(out)
+    assert points.shape == (9900, 2)
+    assert set(np.unique(labels)) == {0, 1}
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["simulate", "paper2d", "--out", "x.txt"],
+        ["simulate", "paper2d", "--out", "/proc/forbidden/x.npz"],
+    ],
+)
+def test_bad_input_exits_2_with_one_line(argv: list[str], tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "octolgp.cli", *argv],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        check=False,
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert lines[0].startswith("octolgp: error:")
+    assert "Traceback" not in proc.stderr
+
+
+def test_version_is_eager(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert "octolgp" in capsys.readouterr().out
+
+
+def test_fig2_overlap_halves_the_border_jump(tmp_path: Path) -> None:
+    r = run_fig2(tmp_path / "fig2.png")
+    assert r.jump_overlap <= 0.5 * r.jump_disjoint
+    assert r.jump_disjoint > 0.01  # disjoint local GPs really do jump
+    assert r.rmse_overlap <= r.rmse_disjoint
+    assert (tmp_path / "fig2.png").stat().st_size > 0
+
+
+def test_bench_paper2d_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "bench"
+    assert main(["bench", "paper2d", "--out", str(out), "--repeats", "1", "--seeds", "1"]) == 0
+    text = capsys.readouterr().out
+    for name in ("OM_LGP", "OM_GP", "OM_MGP", "OGM", "sigma_f", "border jump"):
+        assert name in text
+    for png in ("fig3_maps.png", "fig4_roc.png", "fig2_1d.png"):
+        assert (out / png).stat().st_size > 1000
+    table = (out / "table2.txt").read_text()
+    auc_lgp = float(next(line for line in table.splitlines() if line.startswith("OM_LGP")).split()[-1])
+    assert auc_lgp > 0.97
