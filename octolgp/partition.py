@@ -7,12 +7,16 @@
 3. A test point is predicted by the cluster with the nearest centre, so a cluster
    answers for its Voronoi cell. Its *region* is the bounding box of its hits and of
    its Voronoi cell within the data's bounding box (found on a lattice), grown by
-   ``overlap`` times its extent on every side. Its training set is every hit in the
-   region and every free segment that crosses it, clipped to it (a piece of a free
-   segment is free, target −1, in the average formulation of the integral kernel).
-   Neighbouring regions overlap, so neighbouring local GPs share data at their
-   borders; clipping keeps segments short, so few quadrature nodes suffice. Free
-   pieces beyond ``max_cluster_size`` are thinned at random (seeded).
+   ``overlap`` times its extent on every side; the Voronoi part reaches at most
+   ``box_size / 2`` beyond the hits (farther away a local GP has nothing to say).
+   Its training set is every hit in the region and every free segment that crosses
+   it, clipped to it (a piece of a free segment is free, target −1, in the average
+   formulation of the integral kernel). Neighbouring regions overlap, so
+   neighbouring local GPs share data at their borders; clipping keeps segments
+   short, so few quadrature nodes suffice.
+4. Bounded size: hits shared from neighbours are thinned at random (seeded) so a
+   cluster holds at most ``max_cluster_size`` hits, and free pieces likewise, so a
+   local GP never has more than ``2 * max_cluster_size`` items.
 """
 
 from __future__ import annotations
@@ -198,15 +202,22 @@ def partition(data: TrainingData, config: MapConfig, overlap: float | None = Non
     vor_lo, vor_hi = voronoi_boxes(centres, dom_lo, dom_hi, cells)
     min_extent = 2.0 * config.resolution
     min_piece = 0.5 * config.resolution
+    reach = 0.5 * pc.box_size
     rng = np.random.default_rng(pc.seed)
     clusters = []
     for k, g in enumerate(groups):  # one iteration per cluster
-        lo = np.minimum(hits[g].min(axis=0), vor_lo[k])
-        hi = np.maximum(hits[g].max(axis=0), vor_hi[k])
+        # the Voronoi cell, but no further than half a coarse box beyond the hits
+        hit_lo, hit_hi = hits[g].min(axis=0), hits[g].max(axis=0)
+        lo = np.minimum(hit_lo, np.maximum(vor_lo[k], hit_lo - reach))
+        hi = np.maximum(hit_hi, np.minimum(vor_hi[k], hit_hi + reach))
         margin = frac * np.maximum(hi - lo, min_extent)
         lo, hi = lo - margin, hi + margin
         inside = np.flatnonzero(((hits >= lo) & (hits <= hi)).all(axis=1))
-        inside = np.union1d(inside, g)
+        shared = np.setdiff1d(inside, g, assume_unique=True)
+        room = max(pc.max_cluster_size - g.size, 0)
+        if shared.size > room:
+            shared = rng.choice(shared, room, replace=False)
+        inside = np.union1d(g, shared)
         s, e, keep = _clip_to_box(data.seg_start, data.seg_end, lo, hi)
         keep &= np.linalg.norm(e - s, axis=1) > min_piece
         pieces = np.flatnonzero(keep)
