@@ -43,7 +43,12 @@ def main() -> None:
     print(f"built {len(gmap.clusters)} local GPs in {time.perf_counter() - t0:.1f} s")
 
     # Occupancy on a 0.1 m grid over the building (endpoints' 1st-99th percentiles).
-    pts = np.concatenate([s.points for s in scans])
+    pts = np.concatenate(
+        [
+            s.points[np.linalg.norm(s.points - s.origin, axis=1) < (s.max_range or np.inf)]
+            for s in scans
+        ]
+    )
     lo, hi = np.percentile(pts, 1, axis=0) - 1.0, np.percentile(pts, 99, axis=0) + 1.0
     xs = np.arange(lo[0], hi[0], args.resolution)
     ys = np.arange(lo[1], hi[1], args.resolution)
@@ -58,7 +63,9 @@ def main() -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 8))
-    ax.imshow(prob, origin="lower", cmap="gray_r", vmin=0, vmax=1, extent=(lo[0], hi[0], lo[1], hi[1]))
+    ax.imshow(
+        prob, origin="lower", cmap="gray_r", vmin=0, vmax=1, extent=(lo[0], hi[0], lo[1], hi[1])
+    )
     ax.set_title("Intel lab, OM_LGP P(occupied)")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

@@ -132,6 +132,7 @@ def refine_by_loo(
 ) -> Hyperparameters:
     """Maximise the summed LOO log predictive probability over all five parameters."""
     dists = [node_distances(items) for items, _ in sets]
+    n_total = max(sum(y.size for _, y in sets), 1)
 
     def objective(x: FloatArray) -> tuple[float, FloatArray]:
         value, grad = 0.0, np.zeros(5)
@@ -141,7 +142,7 @@ def refine_by_loo(
             grad += g
         if not np.isfinite(value):
             return 1e300, np.zeros(5)
-        return -value, -grad
+        return -value / n_total, -grad / n_total  # per-item mean: sane first steps
 
     x0 = np.array(
         [

@@ -62,10 +62,16 @@ def fit_plsc(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, flo
     -------
     alpha, beta : float
     """
+    n = max(y.shape[0], 1)
+
+    def mean_objective(params: FloatArray) -> tuple[float, FloatArray]:
+        # the per-item mean keeps L-BFGS-B's first step sane for any n
+        value, grad = _neg_loo_log_prob(params, mu, var, y)
+        return value / n, grad / n
+
     res = minimize(
-        _neg_loo_log_prob,
+        mean_objective,
         x0=np.array([1.0, 0.0]),
-        args=(mu, var, y),
         jac=True,
         method="L-BFGS-B",
         bounds=[(1e-3, 1e3), (-1e2, 1e2)],

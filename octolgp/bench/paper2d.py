@@ -78,7 +78,9 @@ def _seed_aucs(seeds: list[int]) -> dict[str, list[float]]:
     for s in seeds:  # one simulated data set per seed
         data = simulate_paper2d(seed=s)
         config = paper2d_config()
-        fixed = dataclasses.replace(config, hyperparameters=learn_hyperparameters(data.scans, config))
+        fixed = dataclasses.replace(
+            config, hyperparameters=learn_hyperparameters(data.scans, config)
+        )
         for method in METHOD_NAMES:
             prob = build_map(data.scans, fixed, method=method).occupancy(data.truth_points)
             aucs[method].append(float(roc_auc_score(data.truth_labels, prob)))
@@ -112,7 +114,12 @@ def run_paper2d(
     from octolgp.training import make_training_data
 
     n_items = make_training_data(data.scans, fixed).n_items
-    result = Paper2dResult(hp, learning, results, fig2, sum(len(s) for s in data.scans), n_items)
+    seed_aucs = _seed_aucs(list(range(seed + 1, seed + n_seeds)))
+    for key, m in results.items():
+        seed_aucs[key].insert(0, m.auc)
+    result = Paper2dResult(
+        hp, learning, results, fig2, sum(len(s) for s in data.scans), n_items, seed_aucs
+    )
     if out_dir is not None:
         _plot(result, data.truth_points, labels, out_dir)
     return result
