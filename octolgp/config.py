@@ -244,7 +244,7 @@ class MapConfig:
     ogm: OgmConfig = field(default_factory=OgmConfig)
 
     def __post_init__(self) -> None:
-        if self.dim not in (2, 3) or isinstance(self.dim, bool):
+        if type(self.dim) is not int or self.dim not in (2, 3):
             raise OctolgpError(f"MapConfig.dim must be 2 or 3, got {self.dim!r}")
         _positive("MapConfig", "resolution", self.resolution)
         if self.memory_budget_mb is not None:

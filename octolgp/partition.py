@@ -69,8 +69,23 @@ def _kmeans(points: FloatArray, k: int, seed: int) -> IntArray:
     """Labels of k-means with ``k`` clusters (one Lloyd run, seeded k-means++)."""
     if k <= 1 or points.shape[0] <= k:
         return np.minimum(np.arange(points.shape[0]), max(k - 1, 0)).astype(np.int64)
+    if np.unique(points, axis=0).shape[0] < k:  # fewer distinct points than clusters
+        return np.zeros(points.shape[0], dtype=np.int64)
     km = KMeans(n_clusters=k, n_init=1, random_state=seed, max_iter=100, tol=1e-4)
     return np.asarray(km.fit_predict(points), dtype=np.int64)
+
+
+def _split_by_weight(idx: IntArray, weight: IntArray, cap: int) -> list[IntArray]:
+    """Cut an index run into consecutive pieces of summed weight at most ``cap``.
+
+    A piece starts a new block of ``cap - max(w) + 1`` weight, so a block's last hit
+    can add at most ``max(w)``; a hit heavier than ``cap`` stays alone.
+    """
+    w = weight[idx]
+    block = max(cap - int(w.max()) + 1, 1)
+    piece = (np.cumsum(w) - w) // block
+    cuts = np.flatnonzero(np.diff(piece)) + 1
+    return np.split(idx, cuts)
 
 
 def split_under_cap(points: FloatArray, weight: IntArray, cap: int, seed: int) -> list[IntArray]:
@@ -104,7 +119,7 @@ def split_under_cap(points: FloatArray, weight: IntArray, cap: int, seed: int) -
         groups = [idx[labels == g] for g in range(k)]
         groups = [g for g in groups if g.size]
         if len(groups) == 1:  # k-means could not separate (coincident hits)
-            done.extend(np.array_split(idx, k))
+            done.extend(_split_by_weight(idx, weight, cap))
             continue
         todo.extend(groups)
     return done

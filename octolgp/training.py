@@ -112,7 +112,8 @@ def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData
     vec = ends - origins
     length = np.linalg.norm(vec, axis=1)
     valid = length > 1e-9  # an endpoint on the sensor carries no direction
-    no_return = valid & (length >= max_range)
+    # relative tolerance: a range reported at exactly max_range must not round into a hit
+    no_return = valid & (length >= max_range * (1.0 - 1e-9))
     is_hit = valid & ~no_return
     direction = np.zeros_like(vec)
     direction[valid] = vec[valid] / length[valid, None]

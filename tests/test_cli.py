@@ -69,5 +69,7 @@ def test_bench_paper2d_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[
     for png in ("fig3_maps.png", "fig4_roc.png", "fig2_1d.png"):
         assert (out / png).stat().st_size > 1000
     table = (out / "table2.txt").read_text()
-    auc_lgp = float(next(line for line in table.splitlines() if line.startswith("OM_LGP")).split()[-1])
+    auc_lgp = float(
+        next(line for line in table.splitlines() if line.startswith("OM_LGP")).split()[-1]
+    )
     assert auc_lgp > 0.97

@@ -13,9 +13,11 @@ from octolgp.kernels import QuadratureSet, item_covariance, points_set, quadratu
 from octolgp.local_gp import (
     fit_local_gp,
     log_marginal_likelihood,
+    loo_log_predictive,
     loo_predictions,
     predict_latent,
 )
+from octolgp.plsc import _neg_loo_log_prob
 
 HP = Hyperparameters(length_scale=0.7, signal_variance=1.3, noise_variance=0.05)
 
@@ -177,6 +179,34 @@ def test_loo_matches_sklearn_refits_for_points() -> None:
         assert var[i] == pytest.approx(s[0] ** 2 + HP.noise_variance, abs=1e-9)
 
 
+PARAMS = [
+    np.array([np.log(0.7), np.log(1.3), np.log(0.05), 2.0, 0.3]),
+    np.array([np.log(2.0), np.log(0.5), np.log(0.3), 0.5, -0.2]),
+    np.array([np.log(0.3), np.log(4.0), np.log(0.01), 8.0, 1.0]),
+]
+
+
+@pytest.mark.parametrize("params", PARAMS)
+@pytest.mark.parametrize("d", [2, 3])
+def test_loo_log_predictive_value_and_gradient(params: np.ndarray, d: int) -> None:
+    """Σ log Φ(y (α μ_i + β) / √(1 + α² σ_i²)) on the LOO moments; gradient vs differences."""
+    items, y = _mixed_items(seed=4, d=d)
+    value, grad = loo_log_predictive(items, y, params)
+    hp = Hyperparameters(*np.exp(params[:3]))
+    mu, var = loo_predictions(items, y, hp)
+    assert value == pytest.approx(-_neg_loo_log_prob(params[3:], mu, var, y)[0], rel=1e-12)
+    h = 1e-6
+    fd = np.zeros(5)
+    for j in range(5):
+        step = np.zeros(5)
+        step[j] = h
+        fd[j] = (
+            loo_log_predictive(items, y, params + step)[0]
+            - loo_log_predictive(items, y, params - step)[0]
+        ) / (2 * h)
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-6)
+
+
 # --------------------------------------------------------------------------- failure
 
 
@@ -190,6 +220,9 @@ def test_not_positive_definite_raises_with_hint() -> None:
     with pytest.raises(OctolgpError, match="noise_variance"):
         loo_predictions(points_set(X), y, hp)
     value, grad = log_marginal_likelihood(points_set(X), y, np.log([1.0, 1.0, 1e-300]))
+    assert value == -np.inf
+    np.testing.assert_array_equal(grad, 0.0)
+    value, grad = loo_log_predictive(points_set(X), y, np.array([0.0, 0.0, np.log(1e-300), 1, 0]))
     assert value == -np.inf
     np.testing.assert_array_equal(grad, 0.0)
 
