@@ -162,18 +162,18 @@ class LearningConfig:
         Each chosen cluster is randomly subsampled to at most this many items.
     seed : int
         Seed for the choice of clusters and items.
-    objective : {"lml+loo", "lml"}
-        ``"lml"``: the kernel by log marginal likelihood, then α, β by the LOO
-        predictive probability (R&W §6.5). ``"lml+loo"`` (default) then refines all
-        five jointly by the LOO predictive probability, starting from that point:
-        the likelihood alone favours near-interpolating noise levels on occupancy
-        data, which over-confident maps punish.
+    objective : {"lml", "lml+loo"}
+        ``"lml"`` (default): the kernel by log marginal likelihood, then α, β by the
+        LOO predictive probability (R&W §6.5). ``"lml+loo"`` then refines all five
+        jointly by the LOO predictive probability, starting from that point. It
+        helped on the paper's simulation (AUC +0.002) but hurt on a noise-free room
+        (signal variance ran to its bound), so it is opt-in.
     """
 
     max_clusters: int = 8
     max_items_per_cluster: int = 300
     seed: int = 0
-    objective: str = "lml+loo"
+    objective: str = "lml"
 
     def __post_init__(self) -> None:
         if self.objective not in ("lml+loo", "lml"):

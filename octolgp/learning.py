@@ -1,6 +1,6 @@
 """Hyperparameter learning: kernel by marginal likelihood, PLSC α, β by LOO.
 
-With ``LearningConfig.objective == "lml+loo"`` (default) all five are then refined
+With ``LearningConfig.objective == "lml+loo"`` (opt-in) all five are then refined
 jointly by the LOO predictive probability of PLSC (R&W §6.5, eq. 5.13 gradients).
 
 Length scales learnt on one small subset swing widely with the subset, so the log

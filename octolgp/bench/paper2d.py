@@ -151,7 +151,7 @@ def format_table(r: Paper2dResult) -> str:
         f"AUC(OM_LGP) - AUC(OM_GP): {lgp.auc - gp.auc:+.4f}   (target >= -0.01)",
         f"AUC(OM_LGP) - AUC(OGM):   {lgp.auc - ogm.auc:+.4f}   (target >= +0.03)",
         "",
-        f"learning (kernel by marginal likelihood, then all five by LOO): {r.learning_seconds:.3f} s",
+        f"learning (kernel by marginal likelihood, alpha/beta by LOO): {r.learning_seconds:.3f} s",
         f"  l = {hp.length_scale:.3f}  sigma_f = {np.sqrt(hp.signal_variance):.3f}  "
         f"sigma_n = {np.sqrt(hp.noise_variance):.3f}  alpha = {hp.alpha:.3f}  beta = {hp.beta:.3f}",
         "  paper: l = 2.66  sigma_f = 2.81  sigma_n = 0.99  alpha = 7.94  beta = -1.42",
