@@ -12,7 +12,7 @@ length scale, ``10 × resolution``) so the objective is smooth.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 from scipy.optimize import minimize
@@ -69,6 +69,31 @@ def learning_sets(
     return [_subsample(data, clusters[i], config, spacing, rng) for i in np.unique(chosen)]
 
 
+Objective = Callable[[FloatArray], tuple[float, FloatArray]]
+
+
+def _negated_sum(
+    term: Callable[..., tuple[float, FloatArray]],
+    sets: list[tuple[QuadratureSet, FloatArray]],
+    n_params: int,
+    scale: float,
+) -> Objective:
+    """``−scale · Σ term(items, y, x, R)`` and its gradient, node distances computed once."""
+    dists = [node_distances(items) for items, _ in sets]
+
+    def objective(x: FloatArray) -> tuple[float, FloatArray]:
+        value, grad = 0.0, np.zeros(n_params)
+        for (items, y), R in zip(sets, dists, strict=True):
+            v, g = term(items, y, x, R)
+            value += v
+            grad += g
+        if not np.isfinite(value):
+            return 1e300, np.zeros(n_params)
+        return -value * scale, -grad * scale
+
+    return objective
+
+
 def fit_kernel(
     sets: list[tuple[QuadratureSet, FloatArray]], initial: Hyperparameters
 ) -> tuple[float, float, float]:
@@ -78,17 +103,7 @@ def fit_kernel(
     -------
     length_scale, signal_variance, noise_variance : float
     """
-    dists = [node_distances(items) for items, _ in sets]
-
-    def objective(theta: FloatArray) -> tuple[float, FloatArray]:
-        value, grad = 0.0, np.zeros(3)
-        for (items, y), R in zip(sets, dists, strict=True):
-            v, g = log_marginal_likelihood(items, y, theta, R)
-            value += v
-            grad += g
-        if not np.isfinite(value):
-            return 1e300, np.zeros(3)
-        return -value, -grad
+    objective = _negated_sum(log_marginal_likelihood, sets, n_params=3, scale=1.0)
 
     x0 = np.log([initial.length_scale, initial.signal_variance, initial.noise_variance])
     bounds = [(np.log(1e-2), np.log(1e2)), (np.log(1e-2), np.log(1e3)), (np.log(1e-4), np.log(1e2))]
@@ -131,18 +146,9 @@ def refine_by_loo(
     sets: list[tuple[QuadratureSet, FloatArray]], start: Hyperparameters
 ) -> Hyperparameters:
     """Maximise the summed LOO log predictive probability over all five parameters."""
-    dists = [node_distances(items) for items, _ in sets]
     n_total = max(sum(y.size for _, y in sets), 1)
-
-    def objective(x: FloatArray) -> tuple[float, FloatArray]:
-        value, grad = 0.0, np.zeros(5)
-        for (items, y), R in zip(sets, dists, strict=True):
-            v, g = loo_log_predictive(items, y, x, R)
-            value += v
-            grad += g
-        if not np.isfinite(value):
-            return 1e300, np.zeros(5)
-        return -value / n_total, -grad / n_total  # per-item mean: sane first steps
+    # per-item mean: sane first steps for L-BFGS-B
+    objective = _negated_sum(loo_log_predictive, sets, n_params=5, scale=1.0 / n_total)
 
     x0 = np.array(
         [
