@@ -10,12 +10,14 @@ from octolgp.config import (
     LearningConfig,
     MapConfig,
     OgmConfig,
+    OnlineConfig,
     PartitionConfig,
     TrainingConfig,
 )
 from octolgp.errors import OctolgpError
 from octolgp.io import load_scans
 from octolgp.learning import learn_hyperparameters
+from octolgp.online import OnlineMap, ScanUpdate
 from octolgp.scan import Scan
 
 __version__ = "0.1.0"
@@ -26,8 +28,11 @@ __all__ = [
     "MapConfig",
     "OctolgpError",
     "OgmConfig",
+    "OnlineConfig",
+    "OnlineMap",
     "PartitionConfig",
     "Scan",
+    "ScanUpdate",
     "TrainingConfig",
     "__version__",
     "build_map",

@@ -214,6 +214,64 @@ class OgmConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class OnlineConfig:
+    """The online mapper: leaf grid, halos, per-leaf caps, learning and pruning.
+
+    Parameters
+    ----------
+    leaf_depth : int or None
+        OctoMap tree depth of the leaves; a leaf spans ``2**(tree_depth -
+        leaf_depth)`` voxels per axis. ``None`` (default) gives 16 × 16 voxels in
+        2D and 8 × 8 × 8 in 3D.
+    halo : float
+        Overlap margin around each leaf as a fraction of its edge, in ``[0, 0.5)``.
+        Default 0.2.
+    max_leaf_items : int
+        A leaf with more training items than this is split into k-means clusters
+        under ``partition.max_cluster_size`` (the paper's iterative k-means);
+        below it the leaf is one local GP. Default 400.
+    learn_scans : int
+        With ``MapConfig.hyperparameters=None`` the first this many scans are
+        buffered, the hyperparameters are learnt on them and then held fixed.
+    prune : bool
+        Collapse a leaf whose voxels are all confidently free or all confidently
+        occupied to one value (OctoMap-style pruning). Default True.
+    prune_free, prune_occupied : float
+        The confidence bounds of pruning, P(occupied) below / above (OctoMap's
+        clamping thresholds by default).
+    n_jobs : int
+        Threads refitting leaves in parallel. Results do not depend on it.
+    """
+
+    leaf_depth: int | None = None
+    halo: float = 0.2
+    max_leaf_items: int = 400
+    learn_scans: int = 10
+    prune: bool = True
+    prune_free: float = 0.1192
+    prune_occupied: float = 0.971
+    n_jobs: int = 1
+
+    def __post_init__(self) -> None:
+        if self.leaf_depth is not None:
+            _integer("OnlineConfig", "leaf_depth", self.leaf_depth, 1, 16)
+        ok = isinstance(self.halo, int | float) and not isinstance(self.halo, bool)
+        if not ok or not math.isfinite(self.halo) or not 0 <= self.halo < 0.5:
+            raise OctolgpError(f"OnlineConfig.halo must be a number in [0, 0.5), got {self.halo!r}")
+        _integer("OnlineConfig", "max_leaf_items", self.max_leaf_items, 2)
+        _integer("OnlineConfig", "learn_scans", self.learn_scans, 1)
+        if not isinstance(self.prune, bool):
+            raise OctolgpError(f"OnlineConfig.prune must be a bool, got {self.prune!r}")
+        _fraction("OnlineConfig", "prune_free", self.prune_free, open_low=True)
+        _fraction("OnlineConfig", "prune_occupied", self.prune_occupied, open_low=True)
+        if not self.prune_free < 0.5 < self.prune_occupied:
+            raise OctolgpError(
+                "OnlineConfig.prune_free must be < 0.5 < OnlineConfig.prune_occupied"
+            )
+        _integer("OnlineConfig", "n_jobs", self.n_jobs, 1)
+
+
+@dataclass(frozen=True, slots=True)
 class MapConfig:
     """Everything that defines a map. ``MapConfig()`` serves as is.
 
@@ -229,7 +287,7 @@ class MapConfig:
         Bound on the RAM held by leaves; ``None`` (default) means no bound.
     tree_depth : int
         OctoMap key depth: keys are 16-bit, ``floor(x / resolution) + 2**(depth-1)``.
-    training, partition, learning, ogm
+    training, partition, learning, ogm, online
         The per-stage sections.
     """
 
@@ -242,6 +300,7 @@ class MapConfig:
     partition: PartitionConfig = field(default_factory=PartitionConfig)
     learning: LearningConfig = field(default_factory=LearningConfig)
     ogm: OgmConfig = field(default_factory=OgmConfig)
+    online: OnlineConfig = field(default_factory=OnlineConfig)
 
     def __post_init__(self) -> None:
         if type(self.dim) is not int or self.dim not in (2, 3):
@@ -256,6 +315,7 @@ class MapConfig:
             ("partition", PartitionConfig),
             ("learning", LearningConfig),
             ("ogm", OgmConfig),
+            ("online", OnlineConfig),
         )
         for name, kind in checks:
             value = getattr(self, name)
@@ -263,6 +323,14 @@ class MapConfig:
                 continue
             if not isinstance(value, kind):
                 raise OctolgpError(f"MapConfig.{name} must be a {kind.__name__}, got {value!r}")
+        leaf_depth = self.online.leaf_depth
+        if leaf_depth is None:
+            leaf_depth = self.tree_depth - (4 if self.dim == 2 else 3)
+        if not 1 <= leaf_depth <= self.tree_depth:
+            raise OctolgpError(
+                f"OnlineConfig.leaf_depth must be in 1..MapConfig.tree_depth "
+                f"({self.tree_depth}), got {leaf_depth}"
+            )
 
     @property
     def free_margin(self) -> float:
@@ -289,6 +357,7 @@ class MapConfig:
             "partition": PartitionConfig,
             "learning": LearningConfig,
             "ogm": OgmConfig,
+            "online": OnlineConfig,
         }
         kwargs: dict[str, Any] = {}
         valid = {f.name for f in dataclasses.fields(cls)}

@@ -1,0 +1,223 @@
+"""Training data → leaves: the octree leaf grid, overlap halos, and what each leaf holds.
+
+The map is cut into *leaves*: the nodes of the OctoMap key tree at depth
+``leaf_depth``. A leaf spans ``2**(tree_depth - leaf_depth)`` voxels per axis (16 × 16
+in 2D, 8 × 8 × 8 in 3D by default); its index per axis is the voxel key shifted
+right by ``tree_depth - leaf_depth`` bits, so leaf indices are OctoMap keys of a
+coarser tree and pack the same way (:func:`octolgp.keys.pack_keys`).
+
+A leaf's *halo box* is its box grown by ``halo`` times its edge on every side. A leaf
+trains on every hit inside its halo box and on every free segment clipped to it, so
+neighbouring leaves share the data near their common border and their local GPs
+agree there (the overlap of Kim & Kim §III-B).
+
+Everything here is a pure function of the training data and the grid.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from octolgp.baselines.ogm import traverse_voxels
+from octolgp.config import MapConfig
+from octolgp.keys import pack_keys
+from octolgp.partition import _clip_to_box
+from octolgp.scan import FloatArray
+from octolgp.training import IntArray
+
+
+@dataclass(frozen=True, slots=True)
+class LeafGrid:
+    """Geometry of the leaf grid of a map.
+
+    Attributes
+    ----------
+    dim : int
+        2 or 3.
+    resolution : float
+        Voxel edge, metres.
+    tree_depth : int
+        OctoMap key depth (16).
+    leaf_depth : int
+        Tree depth of the leaves; a leaf spans ``2**shift`` voxels per axis,
+        ``shift = tree_depth - leaf_depth``.
+    halo : float
+        Halo margin as a fraction of the leaf edge.
+    """
+
+    dim: int
+    resolution: float
+    tree_depth: int
+    leaf_depth: int
+    halo: float
+
+    @classmethod
+    def from_config(cls, config: MapConfig) -> LeafGrid:
+        """The grid of a map config (``config.online``)."""
+        oc = config.online
+        depth = oc.leaf_depth
+        if depth is None:
+            depth = config.tree_depth - (4 if config.dim == 2 else 3)
+        return cls(config.dim, float(config.resolution), config.tree_depth, depth, oc.halo)
+
+    @property
+    def shift(self) -> int:
+        """Voxel key bits below a leaf."""
+        return self.tree_depth - self.leaf_depth
+
+    @property
+    def side(self) -> int:
+        """Voxels along a leaf's edge."""
+        return 1 << self.shift
+
+    @property
+    def edge(self) -> float:
+        """Leaf edge, metres."""
+        return self.side * self.resolution
+
+    @property
+    def voxels_per_leaf(self) -> int:
+        """Voxels in a leaf, ``side**dim``."""
+        return int(self.side**self.dim)
+
+    @property
+    def _origin(self) -> float:
+        """Coordinate of voxel key 0, metres."""
+        return -float(1 << (self.tree_depth - 1)) * self.resolution
+
+    def leaf_of(self, points: FloatArray) -> IntArray:
+        """Leaf index (per axis) of each point, shape (n, d); points must be addressable."""
+        return np.floor((points - self._origin) / self.edge).astype(np.int64)
+
+    def voxel_keys(self, points: FloatArray) -> IntArray:
+        """Packed voxel keys of points, clamped to the key range, shape (n,)."""
+        keys = np.floor((points - self._origin) / self.resolution).astype(np.int64)
+        return pack_keys(np.clip(keys, 0, (1 << self.tree_depth) - 1))
+
+    def box(self, index: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Core boxes ``lo, hi`` of leaves with indices (k, d), metres."""
+        lo = self._origin + np.asarray(index, dtype=np.float64) * self.edge
+        return lo, lo + self.edge
+
+    def halo_box(self, index: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Halo boxes ``lo, hi`` of leaves with indices (k, d), metres."""
+        lo, hi = self.box(index)
+        margin = self.halo * self.edge
+        return lo - margin, hi + margin
+
+    def voxel_centres(self, index: IntArray) -> FloatArray:
+        """Centres of one leaf's voxels, shape (side**d, d), in flat order (x fastest)."""
+        lo, _ = self.box(np.asarray(index).reshape(1, -1))
+        steps = (np.arange(self.side) + 0.5) * self.resolution
+        grids = np.meshgrid(*([steps] * self.dim), indexing="ij")
+        # flat index = x + side * y (+ side² z): x varies fastest
+        offsets = np.stack([g.ravel(order="F") for g in grids], axis=1)
+        return np.asarray(lo[0] + offsets, dtype=np.float64)
+
+    def voxel_index(self, points: FloatArray, index: IntArray) -> IntArray:
+        """Flat index of each point's voxel within the leaf ``index`` (points inside it)."""
+        lo, _ = self.box(np.asarray(index).reshape(1, -1))
+        local = np.floor((points - lo[0]) / self.resolution).astype(np.int64)
+        local = np.clip(local, 0, self.side - 1)
+        weights = self.side ** np.arange(self.dim, dtype=np.int64)
+        flat: IntArray = local @ weights
+        return flat
+
+    def pack(self, index: IntArray) -> IntArray:
+        """Packed leaf keys of leaf indices (k, d)."""
+        return pack_keys(index)
+
+
+def _valid_leaves(grid: LeafGrid, index: IntArray) -> NDArray[np.bool_]:
+    """Leaves inside the key range of the leaf depth."""
+    inside = (index >= 0) & (index < (1 << grid.leaf_depth))
+    return np.asarray(inside.all(axis=1), dtype=bool)
+
+
+def assign_points(grid: LeafGrid, points: FloatArray) -> tuple[IntArray, IntArray]:
+    """Every (point, leaf) pair where the point lies in the leaf's halo box.
+
+    A halo narrower than half a leaf puts a point in at most two leaves per axis.
+
+    Parameters
+    ----------
+    grid : LeafGrid
+    points : ndarray of shape (n, d)
+        World frame, metres.
+
+    Returns
+    -------
+    point : ndarray of shape (k,)
+        Index into ``points``.
+    leaf : ndarray of shape (k, d)
+        Leaf index of each pair.
+    """
+    margin = grid.halo * grid.edge
+    lo = grid.leaf_of(points - margin)
+    hi = grid.leaf_of(points + margin)
+    pts, leaves = [], []
+    for offset in itertools.product((0, 1), repeat=grid.dim):  # 4 or 8 combinations
+        cand = lo + np.asarray(offset, dtype=np.int64)
+        ok = (cand <= hi).all(axis=1) & _valid_leaves(grid, cand)
+        pts.append(np.flatnonzero(ok))
+        leaves.append(cand[ok])
+    point = np.concatenate(pts)
+    order = np.argsort(point, kind="stable")
+    return point[order], np.concatenate(leaves)[order]
+
+
+def assign_segments(
+    grid: LeafGrid, start: FloatArray, end: FloatArray, min_piece: float
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+    """Every (segment, leaf) pair where the segment crosses the leaf's halo box, clipped.
+
+    The segments are traversed on the leaf grid (Amanatides & Woo); a halo box can
+    only be crossed by a segment that enters the leaf or one of its neighbours, so
+    those candidates are clipped to the halo boxes (Liang-Barsky) and pieces
+    shorter than ``min_piece`` are dropped.
+
+    Parameters
+    ----------
+    grid : LeafGrid
+    start, end : ndarray of shape (s, d)
+        Free segments, world frame, metres.
+    min_piece : float
+        Shortest piece kept, metres.
+
+    Returns
+    -------
+    segment : ndarray of shape (k,)
+        Index into the segments, ascending.
+    leaf : ndarray of shape (k, d)
+    piece_start, piece_end : ndarray of shape (k, d)
+        The segment clipped to the leaf's halo box.
+    """
+    d = grid.dim
+    empty = np.zeros((0, d))
+    if start.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64), np.zeros((0, d), dtype=np.int64), empty, empty
+    # keys of a depth-``leaf_depth`` tree with voxels of one leaf edge are leaf indices
+    seg, keys = traverse_voxels(start, end, grid.edge, grid.leaf_depth)
+    # traverse_voxels stops before the end's leaf: add it
+    seg = np.concatenate([seg, np.arange(start.shape[0], dtype=np.int64)])
+    cells = np.concatenate([keys, grid.leaf_of(end)])
+    # the 3^d neighbourhood of every crossed leaf
+    neighbours = np.array(list(itertools.product((-1, 0, 1), repeat=d)), dtype=np.int64)
+    seg = np.repeat(seg, neighbours.shape[0])
+    cells = (cells[:, None, :] + neighbours[None, :, :]).reshape(-1, d)
+    ok = _valid_leaves(grid, cells)
+    seg, cells = seg[ok], cells[ok]
+    # unique (segment, leaf) pairs
+    packed = pack_keys(cells)
+    order = np.lexsort((packed, seg))
+    seg, cells, packed = seg[order], cells[order], packed[order]
+    first = np.r_[True, (seg[1:] != seg[:-1]) | (packed[1:] != packed[:-1])]
+    seg, cells = seg[first], cells[first]
+    lo, hi = grid.halo_box(cells)
+    a, b, keep = _clip_to_box(start[seg], end[seg], lo, hi)
+    keep &= np.linalg.norm(b - a, axis=1) > min_piece
+    return seg[keep], cells[keep], a[keep], b[keep]

@@ -1,0 +1,585 @@
+"""The online mapper: scans go in one at a time; only the leaves they touch are refitted.
+
+:class:`OnlineMap` is the paper's method made incremental, OctoMap-style:
+
+1. **Scan → training data**: a hit and a free segment per beam
+   (:func:`octolgp.training.make_training_data`), deduplicated per voxel.
+2. **Training data → leaves**: a hit goes to every leaf whose halo box holds it; a
+   free segment is clipped to the halo box of every leaf it crosses
+   (:mod:`octolgp.leaves`).
+3. **Bounded evidence**: a leaf keeps the first hit per voxel and the first free
+   piece per voxel of the piece's end (:meth:`octolgp.store.Leaf.add_evidence`).
+   Its training set is therefore at most two items per voxel of its halo box, so
+   revisiting a place costs nothing once its voxels are observed: a scan that
+   brings no new voxel to a leaf leaves that leaf's GP and voxels as they were.
+   This is exact for a static world; a changing world keeps its first state.
+4. **Leaves → local GP → PLSC**: a touched leaf that gained items is refitted
+   (one GP on its whole training set, or the paper's iterative k-means clusters
+   when it holds more than ``OnlineConfig.max_leaf_items``) and its voxel centres
+   are predicted and written into the store as latent mean, variance and
+   P(occupied).
+5. **Pruning**: a leaf whose voxels are all below ``prune_free`` or all above
+   ``prune_occupied`` keeps one value (the least confident one) instead of one
+   per voxel.
+
+Hyperparameters are those of ``MapConfig.hyperparameters``; when it is ``None``
+the first ``OnlineConfig.learn_scans`` scans are buffered, the hyperparameters are
+learnt on them (:func:`octolgp.learning.learn_hyperparameters`) and then held
+fixed. To re-learn, call :meth:`OnlineMap.relearn` with the scans to learn from:
+every leaf is refitted from its stored evidence with the new values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import numpy as np
+from threadpoolctl import ThreadpoolController
+
+from octolgp.config import Hyperparameters, MapConfig
+from octolgp.errors import OctolgpError
+from octolgp.gpmap import quadrature_spacing
+from octolgp.kernels import quadrature_set
+from octolgp.keys import addressable_mask, addressable_range
+from octolgp.learning import learn_hyperparameters
+from octolgp.leaves import LeafGrid, assign_points, assign_segments
+from octolgp.lgp import LocalGPMap, fit_clusters
+from octolgp.local_gp import fit_local_gp, predict_latent
+from octolgp.partition import partition
+from octolgp.plsc import occupancy_probability
+from octolgp.scan import FloatArray, Scan, as_points
+from octolgp.store import Leaf, LeafStore
+from octolgp.training import IntArray, TrainingData, make_training_data
+
+_CONTROLLER: ThreadpoolController | None = None
+
+
+def _blas_controller() -> ThreadpoolController:
+    """One process-wide controller (finding the BLAS libraries is the slow part)."""
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER
+
+
+@dataclass(frozen=True)
+class ScanUpdate:
+    """What one :meth:`OnlineMap.insert_scan` did.
+
+    Attributes
+    ----------
+    scan : int
+        Number of the scan in the mission, from 1.
+    touched_leaves : int
+        Leaves whose box or halo the scan's evidence reached.
+    refit_leaves : int
+        Touched leaves that gained evidence and were refitted and re-predicted.
+    new_items : int
+        Training items added over all leaves.
+    pruned_leaves : int
+        Refitted leaves that were pruned to one value.
+    seconds : float
+        Wall time of the call.
+    stages : dict of str to float
+        Seconds per stage: ``training``, ``assign``, ``fit`` (fit and predict),
+        ``store``, and ``learning`` when hyperparameters were learnt in this call.
+    buffered : bool
+        True while scans are buffered to learn hyperparameters; the map is
+        unchanged until then.
+    n_leaves : int
+        Leaves in the map after the call.
+    memory_bytes : int
+        Bytes held by the leaves after the call.
+    """
+
+    scan: int
+    touched_leaves: int
+    refit_leaves: int
+    new_items: int
+    pruned_leaves: int
+    seconds: float
+    stages: dict[str, float] = field(default_factory=dict)
+    buffered: bool = False
+    n_leaves: int = 0
+    memory_bytes: int = 0
+
+
+def _items_and_targets(
+    hits: FloatArray, seg_start: FloatArray, seg_end: FloatArray, config: MapConfig, spacing: float
+) -> tuple[Any, FloatArray]:
+    tc = config.training
+    items = quadrature_set(
+        hits, seg_start, seg_end, spacing, tc.min_quadrature_nodes, tc.max_quadrature_nodes
+    )
+    y = np.concatenate([np.ones(hits.shape[0]), -np.ones(seg_start.shape[0])])
+    return items, y
+
+
+def predict_leaf(
+    leaf: Leaf, centres: FloatArray, config: MapConfig, hp: Hyperparameters
+) -> tuple[FloatArray, FloatArray]:
+    """Fit a leaf's local GP(s) on its evidence and predict at its voxel centres.
+
+    Parameters
+    ----------
+    leaf : Leaf
+    centres : ndarray of shape (V, d)
+        The leaf's voxel centres, metres.
+    config : MapConfig
+    hp : Hyperparameters
+
+    Returns
+    -------
+    mean, var : ndarray of shape (V,)
+        Latent posterior (variance without the noise).
+    """
+    spacing = quadrature_spacing(config, hp.length_scale)
+    cap = config.online.max_leaf_items
+    hits, fs, fe = leaf.hits, leaf.free_start, leaf.free_end
+    if leaf.n_items == 0:
+        return np.zeros(centres.shape[0]), np.full(centres.shape[0], hp.signal_variance)
+    if leaf.n_items <= cap or hits.shape[0] == 0:
+        if leaf.n_items > cap:  # free space only: an even, deterministic thinning
+            keep = np.linspace(0, fs.shape[0] - 1, cap).round().astype(np.int64)
+            fs, fe = fs[keep], fe[keep]
+        items, y = _items_and_targets(hits, fs, fe, config, spacing)
+        return predict_latent(fit_local_gp(items, y, hp), centres)
+    # the paper's iterative k-means under the cluster cap, nearest-centre prediction
+    data = TrainingData(hits, fs, fe, np.full(fs.shape[0], -1, dtype=np.int64))
+    clusters = partition(data, config)
+    gps = fit_clusters(data, clusters, config, hp)
+    return LocalGPMap(config, hp, clusters=clusters, gps=gps)._latent_nearest(centres)
+
+
+def _group(packed: IntArray) -> tuple[IntArray, IntArray, IntArray]:
+    """Sort order, unique values and run bounds of packed keys."""
+    order = np.argsort(packed, kind="stable")
+    s = packed[order]
+    starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]]) if s.size else np.zeros(0, np.int64)
+    return order, s[starts], np.append(starts, s.size).astype(np.int64)
+
+
+class OnlineMap:
+    """A continuous occupancy map built scan by scan.
+
+    Parameters
+    ----------
+    config : MapConfig, optional
+        ``MapConfig()`` when omitted.
+    path : str or Path, optional
+        With a path the map is persisted in that SQLite file after every
+        :meth:`insert_scan`; see :mod:`octolgp.mapfile`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from octolgp import MapConfig, OnlineMap, Scan, Hyperparameters
+    >>> hp = Hyperparameters(length_scale=0.5, alpha=5.0)
+    >>> m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp))
+    >>> wall = np.c_[np.full(20, 2.0), np.linspace(-1, 1, 20)]
+    >>> update = m.insert_scan(Scan(origin=[0.0, 0.0], points=wall))
+    >>> update.refit_leaves > 0
+    True
+    >>> bool(m.occupancy([[2.0, 0.0]])[0] > 0.5 > m.occupancy([[1.0, 0.0]])[0])
+    True
+    """
+
+    def __init__(self, config: MapConfig | None = None, path: str | Path | None = None) -> None:
+        if config is None:
+            config = MapConfig()
+        if not isinstance(config, MapConfig):
+            raise OctolgpError(f"config must be a MapConfig, got {type(config).__name__}")
+        self.config = config
+        self.grid = LeafGrid.from_config(config)
+        self.store = LeafStore()
+        self.hyperparameters: Hyperparameters | None = config.hyperparameters
+        self.n_scans = 0
+        self._buffer: list[Scan] = []
+        self._pool: ThreadPoolExecutor | None = None
+        self._centre_offsets = self.grid.voxel_centres(np.zeros(config.dim, dtype=np.int64))
+        self._file: Any = None
+        if path is not None:
+            from octolgp.mapfile import MapFile
+
+            self._file = MapFile.create(path, self)
+
+    # ------------------------------------------------------------------ life cycle
+    @classmethod
+    def open(cls, path: str | Path) -> OnlineMap:
+        """Reopen a map persisted with ``OnlineMap(config, path=...)`` or :meth:`save`.
+
+        Raises
+        ------
+        MapFileNotFound
+            If the file does not exist.
+        OctolgpError
+            If it is not an octolgp map file or is corrupt.
+        """
+        from octolgp.mapfile import MapFile
+
+        return MapFile.open(path)
+
+    def save(self, path: str | Path) -> None:
+        """Write the whole map to a new SQLite map file (replacing ``path`` atomically)."""
+        from octolgp.mapfile import save_map
+
+        save_map(self, path)
+
+    def close(self) -> None:
+        """Release worker threads and the map file."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> OnlineMap:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ updates
+    def _check_scan(self, scan: object) -> Scan:
+        if not isinstance(scan, Scan):
+            raise OctolgpError(f"scan must be a Scan, got {type(scan).__name__}")
+        if scan.dim != self.config.dim:
+            raise OctolgpError(f"scan is {scan.dim}D but MapConfig.dim is {self.config.dim}")
+        res, depth = self.config.resolution, self.config.tree_depth
+        # the halo of a leaf at the edge of the tree must stay addressable too
+        low, high = addressable_range(res, depth)
+        margin = 2 * self.grid.edge
+        for name, pts in (("scan.origin", scan.origin[None, :]), ("scan.points", scan.points)):
+            bad = (pts < low + margin) | (pts >= high - margin)
+            if bad.any():
+                row = int(np.flatnonzero(bad.any(axis=1))[0])
+                raise OctolgpError(
+                    f"{name} row {row} ({pts[row].tolist()}) is outside the addressable range "
+                    f"[{low + margin:g}, {high - margin:g}) m of this map"
+                )
+        return scan
+
+    def insert_scan(self, scan: Scan) -> ScanUpdate:
+        """Add one scan: refit and re-predict only the leaves it brings new evidence to.
+
+        Parameters
+        ----------
+        scan : Scan
+            World-frame scan of dimension ``config.dim``.
+
+        Returns
+        -------
+        ScanUpdate
+
+        Raises
+        ------
+        OctolgpError
+            On a value that is not a :class:`Scan`, a wrong dimension or a point
+            outside the addressable range. The map is then exactly as before.
+        """
+        t0 = time.perf_counter()
+        scan = self._check_scan(scan)
+        if self.hyperparameters is None:
+            self._buffer.append(scan)
+            if len(self._buffer) < self.config.online.learn_scans:
+                self.n_scans += 1
+                return ScanUpdate(
+                    scan=self.n_scans,
+                    touched_leaves=0,
+                    refit_leaves=0,
+                    new_items=0,
+                    pruned_leaves=0,
+                    seconds=time.perf_counter() - t0,
+                    buffered=True,
+                    n_leaves=len(self.store),
+                    memory_bytes=self.memory_bytes(),
+                )
+            return self._learn_and_flush(t0, count_scan=True)
+        self.n_scans += 1
+        return self._integrate([scan], t0)
+
+    def insert_scans(self, scans: Iterable[Scan]) -> list[ScanUpdate]:
+        """Insert scans one by one; return their updates."""
+        return [self.insert_scan(s) for s in scans]
+
+    def flush(self) -> ScanUpdate | None:
+        """Learn hyperparameters from the buffered scans now and insert them.
+
+        Queries call it, so a map with fewer than ``learn_scans`` scans still
+        answers from what it has. Returns ``None`` when nothing is buffered.
+        """
+        if not self._buffer:
+            return None
+        return self._learn_and_flush(time.perf_counter(), count_scan=False)
+
+    def _learn_and_flush(self, t0: float, count_scan: bool) -> ScanUpdate:
+        t1 = time.perf_counter()
+        hp = learn_hyperparameters(self._buffer, self.config)
+        learning = time.perf_counter() - t1
+        self.hyperparameters = hp
+        buffered, self._buffer = self._buffer, []
+        if count_scan:
+            self.n_scans += 1
+        update = self._integrate(buffered, t0)
+        update.stages["learning"] = learning
+        if self._file is not None:
+            self._file.write_meta(self)
+        return update
+
+    def relearn(self, scans: Iterable[Scan]) -> Hyperparameters:
+        """Learn new hyperparameters on ``scans`` and refit every leaf with them."""
+        hp = learn_hyperparameters(scans, self.config)
+        self.set_hyperparameters(hp)
+        return hp
+
+    def set_hyperparameters(self, hp: Hyperparameters) -> None:
+        """Use ``hp`` from now on and refit every leaf from its stored evidence."""
+        if not isinstance(hp, Hyperparameters):
+            raise OctolgpError(f"hp must be Hyperparameters, got {type(hp).__name__}")
+        self.flush()
+        self.hyperparameters = hp
+        leaves = [leaf for _, leaf in self.store.items()]
+        keys = list(self.store)
+        fitted, _ = self._fit(leaves)
+        for key, leaf in zip(keys, fitted, strict=True):
+            self.store.put(key, leaf)
+        if self._file is not None:
+            self._file.write_meta(self)
+            self._file.write_leaves(self, keys, n_scans=self.n_scans, scans=[])
+
+    def _integrate(self, scans: list[Scan], t0: float) -> ScanUpdate:
+        """Scans → evidence per leaf → refit the leaves that gained any → store."""
+        stages: dict[str, float] = {}
+        with _blas_controller().limit(limits=1):
+            t = time.perf_counter()
+            data = make_training_data(scans, self.config)
+            stages["training"] = time.perf_counter() - t
+
+            t = time.perf_counter()
+            changed, touched, new_items = self._gather(data)
+            stages["assign"] = time.perf_counter() - t
+
+            t = time.perf_counter()
+            keys = [k for k, _ in changed]
+            fitted, pruned = self._fit([leaf for _, leaf in changed])
+            stages["fit"] = time.perf_counter() - t
+
+        t = time.perf_counter()
+        for key in touched:
+            leaf = self.store.get(key)
+            if leaf is not None:
+                leaf.touched = self.n_scans
+        for key, leaf in zip(keys, fitted, strict=True):
+            leaf.touched = self.n_scans
+            self.store.put(key, leaf)
+        if self._file is not None:
+            self._file.write_leaves(self, keys, n_scans=self.n_scans, scans=scans)
+        stages["store"] = time.perf_counter() - t
+        return ScanUpdate(
+            scan=self.n_scans,
+            touched_leaves=len(touched),
+            refit_leaves=len(keys),
+            new_items=new_items,
+            pruned_leaves=pruned,
+            seconds=time.perf_counter() - t0,
+            stages=stages,
+            n_leaves=len(self.store),
+            memory_bytes=self.memory_bytes(),
+        )
+
+    def _gather(self, data: TrainingData) -> tuple[list[tuple[int, Leaf]], list[int], int]:
+        """Copies of the touched leaves with the new evidence added (the store is untouched).
+
+        Returns the leaves that gained items (key, new leaf), the keys of all
+        touched leaves, and the number of items added.
+        """
+        grid = self.grid
+        h_idx, h_leaf = assign_points(grid, data.hits)
+        _, s_leaf, a, b = assign_segments(
+            grid, data.seg_start, data.seg_end, 0.5 * self.config.resolution
+        )
+        hits = data.hits[h_idx]
+        hit_keys = grid.voxel_keys(hits)
+        free_keys = grid.voxel_keys(b)
+        h_order, h_keys, h_bounds = _group(grid.pack(h_leaf))
+        s_order, s_keys, s_bounds = _group(grid.pack(s_leaf))
+        touched = np.union1d(h_keys, s_keys)
+        changed: list[tuple[int, Leaf]] = []
+        new_items = 0
+        hi = np.searchsorted(h_keys, touched)
+        si = np.searchsorted(s_keys, touched)
+        for j, key in enumerate(touched.tolist()):  # one iteration per touched leaf
+            hsel = np.zeros(0, dtype=np.int64)
+            ssel = np.zeros(0, dtype=np.int64)
+            if hi[j] < h_keys.size and h_keys[hi[j]] == key:
+                hsel = h_order[h_bounds[hi[j]] : h_bounds[hi[j] + 1]]
+            if si[j] < s_keys.size and s_keys[si[j]] == key:
+                ssel = s_order[s_bounds[si[j]] : s_bounds[si[j] + 1]]
+            old = self.store.get(key)
+            if old is None:
+                index = h_leaf[hsel[0]] if hsel.size else s_leaf[ssel[0]]
+                leaf = Leaf.empty(index)
+            else:
+                leaf = dataclasses.replace(old)
+            added = leaf.add_evidence(hits[hsel], hit_keys[hsel], a[ssel], b[ssel], free_keys[ssel])
+            if added:
+                new_items += added
+                changed.append((key, leaf))
+        return changed, touched.tolist(), new_items
+
+    def _fit(self, leaves: list[Leaf]) -> tuple[list[Leaf], int]:
+        """Refit and re-predict leaves (threads over leaves); returns new leaves and pruned count."""
+        hp = self.hyperparameters
+        assert hp is not None
+        config = self.config
+        oc = config.online
+
+        def fit(leaf: Leaf) -> Leaf:
+            centres = self._centre_offsets + self.grid.box(leaf.index[None, :])[0]
+            mean, var = predict_leaf(leaf, centres, config, hp)
+            prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+            pruned = False
+            if oc.prune and (prob.max() < oc.prune_free or prob.min() > oc.prune_occupied):
+                # keep the least confident voxel: a pruned leaf never overstates
+                at = int(np.argmax(prob) if prob.max() < oc.prune_free else np.argmin(prob))
+                mean, var, prob = mean[at : at + 1], var[at : at + 1], prob[at : at + 1]
+                pruned = True
+            return dataclasses.replace(
+                leaf,
+                mean=mean.astype(np.float32),
+                var=var.astype(np.float32),
+                prob=prob.astype(np.float32),
+                pruned=pruned,
+                refits=leaf.refits + 1,
+            )
+
+        if oc.n_jobs > 1 and len(leaves) > 1:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=oc.n_jobs)
+            with _blas_controller().limit(limits=1):
+                out = list(self._pool.map(fit, leaves))
+        else:
+            out = [fit(leaf) for leaf in leaves]
+        return out, sum(leaf.pruned for leaf in out)
+
+    # ------------------------------------------------------------------ queries
+    def _points(self, points: object) -> FloatArray:
+        X = as_points(points, "points", dim=self.config.dim)
+        inside = addressable_mask(X, self.config.resolution, self.config.tree_depth)
+        if not inside.all():
+            low, high = addressable_range(self.config.resolution, self.config.tree_depth)
+            row = int(np.flatnonzero(~inside)[0])
+            raise OctolgpError(
+                f"points row {row} ({X[row].tolist()}) is outside the addressable range "
+                f"[{low:g}, {high:g}) m"
+            )
+        return X
+
+    def _lookup(self, X: FloatArray, fields: tuple[str, ...]) -> list[np.ndarray]:
+        """Stored voxel values at points; NaN where no leaf holds the point."""
+        out = [np.full(X.shape[0], np.nan) for _ in fields]
+        if X.shape[0] == 0 or len(self.store) == 0:
+            return out
+        leaf_idx = self.grid.leaf_of(X)
+        order, keys, bounds = _group(self.grid.pack(leaf_idx))
+        for j, key in enumerate(keys.tolist()):  # one iteration per leaf queried
+            leaf = self.store.get(key)
+            if leaf is None or leaf.prob.size == 0:
+                continue
+            sel = order[bounds[j] : bounds[j + 1]]
+            flat = np.zeros(sel.size, dtype=np.int64)
+            if not leaf.pruned:
+                flat = self.grid.voxel_index(X[sel], leaf.index)
+            for arr, name in zip(out, fields, strict=True):
+                arr[sel] = getattr(leaf, name)[flat]
+        return out
+
+    def occupancy(self, points: object) -> FloatArray:
+        """P(occupied) at query points: the value of the voxel holding each point.
+
+        Parameters
+        ----------
+        points : array_like of shape (q, d)
+            World frame, metres.
+
+        Returns
+        -------
+        ndarray of shape (q,)
+            In [0, 1]; exactly 0.5 where no leaf holds evidence.
+
+        Raises
+        ------
+        OctolgpError
+            On a bad shape, a non-finite value or a point outside the addressable range.
+        """
+        X = self._points(points)
+        self.flush()
+        (prob,) = self._lookup(X, ("prob",))
+        return np.where(np.isnan(prob), 0.5, prob)
+
+    def latent(self, points: object) -> tuple[FloatArray, FloatArray]:
+        """GP latent mean and variance at query points (the voxel holding each point).
+
+        Returns
+        -------
+        mean, var : ndarray of shape (q,)
+            The prior ``(0, σf²)`` where no leaf holds evidence (``σf² = 1`` before
+            hyperparameters exist).
+        """
+        X = self._points(points)
+        self.flush()
+        mean, var = self._lookup(X, ("mean", "var"))
+        prior = 1.0 if self.hyperparameters is None else self.hyperparameters.signal_variance
+        return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
+
+    def leaves(self) -> Iterator[tuple[int, Leaf]]:
+        """``(packed leaf key, leaf)`` for every leaf, in key order."""
+        return self.store.items()
+
+    def voxels(self) -> tuple[FloatArray, FloatArray]:
+        """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
+
+        Returns
+        -------
+        centres : ndarray of shape (k, d)
+        prob : ndarray of shape (k,)
+        """
+        self.flush()
+        cs, ps = [], []
+        for _, leaf in self.store.items():  # one iteration per leaf
+            if leaf.prob.size == 0:
+                continue
+            cs.append(self._centre_offsets + self.grid.box(leaf.index[None, :])[0])
+            ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
+        if not cs:
+            return np.zeros((0, self.config.dim)), np.zeros(0)
+        return np.concatenate(cs), np.concatenate(ps)
+
+    def occupied_voxels(self, threshold: float = 0.5) -> tuple[FloatArray, FloatArray]:
+        """Centres and P(occupied) of the voxels above ``threshold``."""
+        centres, prob = self.voxels()
+        keep = prob > threshold
+        return centres[keep], prob[keep]
+
+    def memory_bytes(self) -> int:
+        """Bytes held by the leaves (evidence and voxel values)."""
+        return self.store.nbytes
+
+    def __repr__(self) -> str:
+        return (
+            f"OnlineMap(dim={self.config.dim}, resolution={self.config.resolution:g}, "
+            f"scans={self.n_scans}, leaves={len(self.store)})"
+        )
