@@ -1,4 +1,4 @@
-"""Command line: ``octolgp simulate | bench``.
+"""Command line: ``octolgp simulate | run | query | bench``.
 
 The CLI is the only place that exits. A user error prints one line on stderr and
 exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
@@ -9,13 +9,17 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from octolgp import __version__
 from octolgp.errors import OctolgpError
 
 EXAMPLES = """examples:
   octolgp simulate paper2d --out paper2d.npz --seed 0
+  octolgp run data/intel_lab/intel-corrected.log.gz --out intel.octolgp
+  octolgp query intel.octolgp --points pts.npy --out prob.npy
   octolgp bench paper2d --out bench_out
 """
 
@@ -49,6 +53,85 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _first_and_rest(path: str, fmt: str | None) -> tuple[Any, Iterator[Any]]:
+    """The first scan of a log (to learn its dimension) and an iterator over all of them."""
+    import itertools
+
+    from octolgp.io import load_scans
+
+    it = iter(load_scans(path, format=fmt))
+    first = next(it, None)
+    if first is None:
+        raise OctolgpError(f"SCANS {path!r} holds no scans")
+    return first, itertools.chain([first], it)
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    import itertools
+
+    from tqdm import tqdm
+
+    from octolgp.config import MapConfig, OnlineConfig
+    from octolgp.online import OnlineMap
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
+    first, scans = _first_and_rest(args.scans, args.format)
+    if args.limit is not None:
+        scans = itertools.islice(scans, args.limit)
+    config = MapConfig(
+        dim=first.dim,
+        resolution=args.resolution,
+        online=OnlineConfig(n_jobs=args.jobs, learn_scans=args.learn_scans),
+    )
+    if out.exists():
+        out.unlink()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with OnlineMap(config, path=out) as m:
+        bar = tqdm(scans, unit="scan", disable=args.quiet or None, dynamic_ncols=True)
+        for scan in bar:  # one iteration per scan
+            update = m.insert_scan(scan)
+            bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
+        m.flush()
+        n_leaves, n_scans = len(m.store), m.n_scans
+    print(f"wrote {out}: {n_scans} scans, {n_leaves} leaves, hyperparameters {m.hyperparameters}")
+    return 0
+
+
+def _cmd_query(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from octolgp.online import OnlineMap
+
+    pts_path = Path(args.points)
+    if not pts_path.is_file():
+        raise OctolgpError(f"--points {str(pts_path)!r} does not exist")
+    try:
+        pts = np.load(pts_path, allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise OctolgpError(f"--points {str(pts_path)!r} is not a .npy array: {exc}") from None
+    with OnlineMap.open(args.map) as m:
+        prob = m.occupancy(pts)
+    np.save(args.out, prob)
+    print(f"wrote {args.out}: P(occupied) at {prob.size} points")
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
 def make_parser() -> argparse.ArgumentParser:
     """The argument parser with every subcommand."""
     parser = argparse.ArgumentParser(
@@ -66,6 +149,26 @@ def make_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", required=True, help="output .npz scan log")
     sim.add_argument("--seed", type=int, default=0)
     sim.set_defaults(func=_cmd_simulate)
+
+    run = sub.add_parser("run", help="map a scan log online, scan by scan")
+    run.add_argument("scans", help="scan log: npz scan log or CARMEN .log/.clf[.gz]")
+    run.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
+    run.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    run.add_argument("--format", default=None, help="scan log format (default: guessed)")
+    run.add_argument("--jobs", type=_positive_int, default=1, help="threads refitting leaves")
+    run.add_argument(
+        "--learn-scans", type=_positive_int, default=10, help="scans to learn hyperparameters on"
+    )
+    run.add_argument("--limit", type=_positive_int, default=None, help="stop after N scans")
+    run.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=_cmd_run)
+
+    query = sub.add_parser("query", help="P(occupied) at query points of a map file")
+    query.add_argument("map", help="map file written by run")
+    query.add_argument("--points", required=True, help=".npy array of shape (q, d)")
+    query.add_argument("--out", required=True, help=".npy file for the probabilities")
+    query.set_defaults(func=_cmd_query)
 
     bench = sub.add_parser("bench", help="reproduce the paper's Table II, Fig. 2-4")
     bench.add_argument("scene", choices=["paper2d"])

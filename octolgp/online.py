@@ -3,7 +3,7 @@
 :class:`OnlineMap` is the paper's method made incremental, OctoMap-style:
 
 1. **Scan → training data**: a hit and a free segment per beam
-   (:func:`octolgp.training.make_training_data`), deduplicated per voxel.
+   (:func:`octolgp.training.make_training_data`).
 2. **Training data → leaves**: a hit goes to every leaf whose halo box holds it; a
    free segment is clipped to the halo box of every leaf it crosses
    (:mod:`octolgp.leaves`).
@@ -13,6 +13,8 @@
    revisiting a place costs nothing once its voxels are observed: a scan that
    brings no new voxel to a leaf leaves that leaf's GP and voxels as they were.
    This is exact for a static world; a changing world keeps its first state.
+   Because the rule is "first in time order", inserting scans one by one gives
+   bit-for-bit the map of inserting them all at once.
 4. **Leaves → local GP → PLSC**: a touched leaf that gained items is refitted
    (one GP on its whole training set, or the paper's iterative k-means clusters
    when it holds more than ``OnlineConfig.max_leaf_items``) and its voxel centres
@@ -203,8 +205,15 @@ class OnlineMap:
         self.n_scans = 0
         self._buffer: list[Scan] = []
         self._pool: ThreadPoolExecutor | None = None
-        self._centre_offsets = self.grid.voxel_centres(np.zeros(config.dim, dtype=np.int64))
+        zero = np.zeros((1, config.dim), dtype=np.int64)
+        # voxel centres relative to a leaf's low corner, flat voxel order
+        self._centre_offsets = self.grid.voxel_centres(zero[0]) - self.grid.box(zero)[0]
         self._file: Any = None
+        # Evidence is deduplicated per leaf (Leaf.add_evidence), in time order, so a
+        # scan-level dedup would only make one-by-one and all-at-once insertion differ.
+        self._raw_config = dataclasses.replace(
+            config, training=dataclasses.replace(config.training, dedup=False)
+        )
         if path is not None:
             from octolgp.mapfile import MapFile
 
@@ -365,7 +374,7 @@ class OnlineMap:
         stages: dict[str, float] = {}
         with _blas_controller().limit(limits=1):
             t = time.perf_counter()
-            data = make_training_data(scans, self.config)
+            data = make_training_data(scans, self._raw_config)
             stages["training"] = time.perf_counter() - t
 
             t = time.perf_counter()
