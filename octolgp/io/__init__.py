@@ -6,6 +6,8 @@ Supported formats (``format=`` names):
   validated at the call.
 - ``"carmen"``: CARMEN text logs ``.log``/``.clf``, optionally ``.gz``
   (:mod:`octolgp.io.carmen`), streamed line by line.
+- ``"3dtk"``: a directory of 3DTK ``scanNNN.3d[.xz]`` files with ``.frames``/``.pose`` poses, or
+  one such file (:mod:`octolgp.io.threedtk`), streamed scan by scan.
 """
 
 from __future__ import annotations
@@ -18,13 +20,16 @@ from numpy.typing import ArrayLike
 from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.io.carmen import CarmenReader, looks_like_carmen, read_carmen
 from octolgp.io.npz import read_npz, read_truth, write_npz
+from octolgp.io.threedtk import ThreeDTKReader, looks_like_3dtk, read_3dtk
 from octolgp.scan import Scan
 
 __all__ = [
     "SCAN_FORMATS",
     "CarmenReader",
+    "ThreeDTKReader",
     "detect_format",
     "load_scans",
+    "read_3dtk",
     "read_carmen",
     "read_npz",
     "read_truth",
@@ -32,7 +37,7 @@ __all__ = [
     "write_npz",
 ]
 
-SCAN_FORMATS = ("npz", "carmen")
+SCAN_FORMATS = ("npz", "carmen", "3dtk")
 """Names accepted by ``load_scans(..., format=...)``."""
 
 _CARMEN_SUFFIXES = (".log", ".clf")
@@ -46,7 +51,7 @@ def detect_format(path: str | Path) -> str:
     Parameters
     ----------
     path : str or Path
-        An existing file.
+        An existing file, or a directory of 3DTK scans.
 
     Returns
     -------
@@ -63,6 +68,8 @@ def detect_format(path: str | Path) -> str:
     p = Path(path)
     if not p.exists():
         raise MapFileNotFound(f"scan log {str(p)!r} does not exist")
+    if looks_like_3dtk(p):
+        return "3dtk"
     if not p.is_file():
         raise OctolgpError(f"scan log {str(p)!r} is not a file")
     # Suffix first: x.npz, x.log, x.clf, x.log.gz, x.clf.gz.
@@ -96,12 +103,13 @@ def load_scans(
     Parameters
     ----------
     path : str or Path
-        The log file.
+        The log file (or 3DTK scan directory).
     format : str, optional
         One of :data:`SCAN_FORMATS`; chosen by :func:`detect_format` when omitted.
     skip_bad : bool
-        CARMEN only: skip malformed laser lines and count them (the returned
-        :class:`~octolgp.io.carmen.CarmenReader` has ``skipped``) instead of raising.
+        CARMEN and 3DTK: skip malformed laser or point lines and count them (the returned
+        :class:`~octolgp.io.carmen.CarmenReader` or
+        :class:`~octolgp.io.threedtk.ThreeDTKReader` has ``skipped``) instead of raising.
 
     Returns
     -------
@@ -114,7 +122,7 @@ def load_scans(
         At the call, if ``path`` does not exist.
     OctolgpError
         At the call for an unknown format name or a foreign/unreadable file; while
-        iterating for a corrupt part (CARMEN), naming the file and line.
+        iterating for a corrupt part (CARMEN, 3DTK), naming the file and line.
     """
     p = Path(path)
     if not p.exists():
@@ -125,6 +133,8 @@ def load_scans(
         return read_npz(p)
     if format == "carmen":
         return CarmenReader(p, skip_bad=skip_bad)
+    if format == "3dtk":
+        return ThreeDTKReader(p, skip_bad=skip_bad)
     raise OctolgpError(f"load_scans: unknown format {format!r} (supported: {SCAN_FORMATS})")
 
 

@@ -1,0 +1,417 @@
+"""The online mapper: leaf geometry, bounded evidence, incremental updates, queries, files."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import sqlite3
+
+import numpy as np
+import pytest
+from sklearn.metrics import roc_auc_score
+
+from octolgp import (
+    Hyperparameters,
+    MapConfig,
+    OctolgpError,
+    OnlineConfig,
+    OnlineMap,
+    Scan,
+    build_map,
+)
+from octolgp.errors import MapFileNotFound
+from octolgp.leaves import LeafGrid, assign_points, assign_segments
+from octolgp.partition import _clip_to_box
+from octolgp.simulate import simulate_paper2d
+from octolgp.store import Leaf
+
+HP = Hyperparameters(length_scale=0.8, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
+
+
+def room_scan(origin: tuple[float, float], n: int = 90, size: float = 4.0) -> Scan:
+    """A 2D scan from ``origin`` inside the square room [-size, size]²."""
+    ang = np.linspace(-np.pi, np.pi, n, endpoint=False)
+    d = np.c_[np.cos(ang), np.sin(ang)]
+    o = np.asarray(origin, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.min(np.where(d != 0, (np.sign(d) * size - o) / d, np.inf), axis=1)
+    return Scan(origin=o, points=o + t[:, None] * d)
+
+
+def config2d(**online: object) -> MapConfig:
+    return MapConfig(
+        dim=2,
+        resolution=0.1,
+        hyperparameters=HP,
+        online=OnlineConfig(**online),  # type: ignore[arg-type]
+    )
+
+
+def snapshot(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
+    """Every stored array of every leaf, as bytes."""
+    fields = ("hits", "free_start", "free_end", "mean", "var", "prob")
+    return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
+
+
+# ---------------------------------------------------------------- leaf geometry
+@pytest.mark.parametrize("dim", [2, 3])
+def test_assign_points_matches_brute_force(dim: int) -> None:
+    grid = LeafGrid(dim, 0.1, 16, 16 - (4 if dim == 2 else 3), 0.2)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(-3, 3, size=(300, dim))
+    idx, leaf = assign_points(grid, pts)
+    got = {(int(i), *map(int, k)) for i, k in zip(idx, leaf, strict=True)}
+    centre = grid.leaf_of(pts)
+    want = set()
+    for offset in itertools.product((-1, 0, 1), repeat=dim):
+        cand = centre + np.array(offset)
+        lo, hi = grid.halo_box(cand)
+        inside = ((pts >= lo) & (pts <= hi)).all(axis=1)
+        want |= {(int(i), *map(int, cand[i])) for i in np.flatnonzero(inside)}
+    assert got == want
+    # the leaf that owns a point (its core box) is always among its leaves
+    assert {(i, *map(int, centre[i])) for i in range(pts.shape[0])} <= got
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_assign_segments_matches_brute_force(dim: int) -> None:
+    grid = LeafGrid(dim, 0.1, 16, 16 - (4 if dim == 2 else 3), 0.2)
+    rng = np.random.default_rng(1)
+    a = rng.uniform(-4, 4, size=(60, dim))
+    b = a + rng.normal(scale=2.0, size=(60, dim))
+    seg, leaf, pa, pb = assign_segments(grid, a, b, 0.05)
+    got = {(int(s), *map(int, k)) for s, k in zip(seg, leaf, strict=True)}
+    # brute force: every leaf in the bounding region, clipped
+    lo_idx = grid.leaf_of(np.minimum(a, b).min(axis=0)[None] - grid.edge)[0]
+    hi_idx = grid.leaf_of(np.maximum(a, b).max(axis=0)[None] + grid.edge)[0]
+    cells = np.array(
+        list(itertools.product(*[range(lo, hi + 1) for lo, hi in zip(lo_idx, hi_idx, strict=True)]))
+    )
+    want = set()
+    for s in range(a.shape[0]):
+        lo, hi = grid.halo_box(cells)
+        ca, cb, keep = _clip_to_box(
+            np.repeat(a[s : s + 1], len(cells), 0), np.repeat(b[s : s + 1], len(cells), 0), lo, hi
+        )
+        keep &= np.linalg.norm(cb - ca, axis=1) > 0.05
+        want |= {(s, *map(int, c)) for c in cells[keep]}
+    assert got == want
+    # pieces lie on their segment and inside their leaf's halo box
+    lo, hi = grid.halo_box(leaf)
+    tol = 1e-9
+    assert ((pa >= lo - tol) & (pa <= hi + tol) & (pb >= lo - tol) & (pb <= hi + tol)).all()
+    for p in (pa, pb):
+        u = p - a[seg]
+        d = b[seg] - a[seg]
+        cross = np.abs(u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0])
+        assert cross.max() < 1e-9 * np.abs(d).max() * 10 + 1e-9
+
+
+def test_voxel_index_inverts_voxel_centres() -> None:
+    grid = LeafGrid(3, 0.2, 16, 13, 0.2)
+    index = np.array([4000, 4100, 4090])
+    centres = grid.voxel_centres(index)
+    assert centres.shape == (512, 3)
+    assert np.array_equal(grid.voxel_index(centres, index), np.arange(512))
+    lo, hi = grid.box(index[None])
+    assert (centres > lo).all()
+    assert (centres < hi).all()
+
+
+def test_leaf_keeps_first_item_per_voxel() -> None:
+    leaf = Leaf.empty(np.array([1, 2]))
+    pts = np.array([[0.01, 0.01], [0.02, 0.02], [0.5, 0.5]])
+    keys = np.array([7, 7, 9])
+    assert leaf.add_evidence(pts, keys, pts[:0], pts[:0], keys[:0]) == 2
+    assert np.array_equal(leaf.hits, pts[[0, 2]])
+    assert leaf.add_evidence(pts, keys, pts, pts + 1, keys) == 2  # only the free ones are new
+    assert leaf.add_evidence(pts, keys, pts, pts + 1, keys) == 0
+
+
+# ---------------------------------------------------------------- updates
+def test_untouched_leaves_are_bit_for_bit_unchanged() -> None:
+    m = OnlineMap(config2d())
+    m.insert_scan(room_scan((-2.5, -2.5), size=4.0))
+    before = snapshot(m)
+    second = Scan(origin=[-2.5, -2.5], points=[[-1.0, -2.5], [-2.5, -1.2]])
+    update = m.insert_scan(second)
+    after = snapshot(m)
+    assert 0 < update.refit_leaves <= update.touched_leaves < len(before)
+    changed = {k for k in before if before[k] != after[k]}
+    assert 0 < len(changed) <= update.refit_leaves
+    for key in set(before) - changed:
+        assert before[key] == after[key]
+    # a far-away leaf did not move at all
+    assert m.store.get(max(before)).refits == 1  # type: ignore[union-attr]
+
+
+def test_one_by_one_equals_all_at_once() -> None:
+    scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1), (-1, 2)]]
+    a = OnlineMap(config2d())
+    for s in scans:
+        a.insert_scan(s)
+    b = OnlineMap(config2d())
+    b._integrate(scans, 0.0)
+    assert snapshot(a) == snapshot(b)
+
+
+def test_revisiting_adds_nothing_and_memory_saturates() -> None:
+    scans = [room_scan((x, 0.5 * x)) for x in np.linspace(-2, 2, 5)]
+    m = OnlineMap(config2d())
+    m.insert_scans(scans)
+    first = snapshot(m)
+    mem = m.memory_bytes()
+    updates = m.insert_scans(scans)
+    assert all(u.refit_leaves == 0 and u.new_items == 0 for u in updates)
+    assert all(u.touched_leaves > 0 for u in updates)
+    assert m.memory_bytes() == mem
+    assert snapshot(m) == first
+
+
+def test_evidence_per_leaf_is_bounded_by_its_voxels() -> None:
+    rng = np.random.default_rng(3)
+    m = OnlineMap(config2d(max_leaf_items=10_000))
+    for _ in range(30):
+        m.insert_scan(room_scan(tuple(rng.uniform(-3, 3, 2)), n=180, size=4.0))
+    halo_voxels = int(np.ceil(m.grid.side * (1 + 2 * m.grid.halo)) + 1) ** 2
+    for _, leaf in m.leaves():
+        assert np.unique(leaf.hit_keys).size == leaf.hit_keys.size <= halo_voxels
+        assert np.unique(leaf.free_keys).size == leaf.free_keys.size <= 4 * halo_voxels
+
+
+def test_threads_give_identical_maps() -> None:
+    scans = [room_scan((x, -x)) for x in (-2.0, 0.0, 2.0)]
+    a = OnlineMap(config2d(n_jobs=1))
+    b = OnlineMap(config2d(n_jobs=2))
+    a.insert_scans(scans)
+    b.insert_scans(scans)
+    b.close()
+    assert snapshot(a) == snapshot(b)
+
+
+def test_leaf_over_the_cap_is_split_by_kmeans() -> None:
+    scans = [room_scan((x, 0.0), n=360) for x in (-3.0, -2.8)]
+    small = OnlineMap(config2d(max_leaf_items=40))
+    small.insert_scans(scans)
+    big = OnlineMap(config2d())
+    big.insert_scans(scans)
+    corner = np.array([[-3.95, -3.95], [-3.95, 3.95], [-3.0, -3.9]])
+    assert (small.occupancy(corner) > 0.5).all()
+    assert np.abs(small.occupancy(corner) - big.occupancy(corner)).max() < 0.2
+    assert any(leaf.n_items > 40 for _, leaf in small.leaves())
+
+
+# ---------------------------------------------------------------- against batch
+def test_online_matches_batch_on_the_paper_simulation() -> None:
+    data = simulate_paper2d(seed=0)
+    config = MapConfig(
+        dim=2,
+        resolution=0.2,
+        hyperparameters=Hyperparameters(1.2, 1.0, 0.1, 6.0, -0.2),
+    )
+    batch = build_map(data.scans, config, method="lgp")
+    online = OnlineMap(config)
+    online.insert_scans(data.scans)
+    auc_b = roc_auc_score(data.truth_labels, batch.occupancy(data.truth_points))
+    auc_o = roc_auc_score(data.truth_labels, online.occupancy(data.truth_points))
+    assert auc_o > 0.97
+    assert abs(auc_o - auc_b) < 0.01
+
+
+# ---------------------------------------------------------------- queries
+def test_unknown_space_is_exactly_half_and_prior() -> None:
+    m = OnlineMap(config2d())
+    assert m.occupancy([[0.0, 0.0]])[0] == 0.5
+    m.insert_scan(room_scan((0.0, 0.0), size=2.0))
+    far = np.array([[100.0, 100.0], [-50.0, 3.0]])
+    assert np.array_equal(m.occupancy(far), [0.5, 0.5])
+    mean, var = m.latent(far)
+    assert np.array_equal(mean, [0.0, 0.0])
+    assert np.array_equal(var, [1.0, 1.0])
+    wall, free = m.occupancy([[2.0, 0.0], [0.5, 0.0]])
+    assert wall > 0.7
+    assert free < 0.3
+
+
+def test_queries_read_the_voxel_values() -> None:
+    m = OnlineMap(config2d(prune=False))
+    m.insert_scan(room_scan((0.0, 0.0), size=2.0))
+    _key, leaf = next(iter(m.leaves()))
+    centres = m.grid.voxel_centres(leaf.index)
+    jitter = np.random.default_rng(0).uniform(-0.049, 0.049, centres.shape)
+    assert np.array_equal(m.occupancy(centres + jitter), leaf.prob.astype(float))
+    mean, var = m.latent(centres)
+    assert np.array_equal(mean, leaf.mean.astype(float))
+    assert np.array_equal(var, leaf.var.astype(float))
+    pts, prob = m.occupied_voxels(0.5)
+    assert (prob > 0.5).all()
+    assert pts.shape == (prob.size, 2)
+    assert np.array_equal(m.occupancy(pts), prob)
+
+
+def test_pruned_leaves_hold_one_conservative_value() -> None:
+    scans = [room_scan((x, y), n=360, size=6.0) for x in (-3, 0, 3) for y in (-3, 0, 3)]
+    pruned = OnlineMap(config2d())
+    full = OnlineMap(config2d(prune=False))
+    pruned.insert_scans(scans)
+    full.insert_scans(scans)
+    n_pruned = 0
+    for key, leaf in pruned.leaves():
+        other = full.store.get(key)
+        assert other is not None
+        if leaf.pruned:
+            n_pruned += 1
+            assert leaf.prob.size == 1
+            if leaf.prob[0] < 0.5:
+                assert leaf.prob[0] == other.prob.max() < 0.1192
+            else:
+                assert leaf.prob[0] == other.prob.min() > 0.971
+        else:
+            assert np.array_equal(leaf.prob, other.prob)
+    assert n_pruned > 0
+    assert pruned.memory_bytes() < full.memory_bytes()
+
+
+# ---------------------------------------------------------------- bad input
+@pytest.mark.parametrize(
+    ("bad", "field"),
+    [
+        ("not a scan", "scan must be a Scan"),
+        (Scan(origin=[0.0, 0.0, 0.0], points=[[1.0, 0.0, 0.0]]), "MapConfig.dim"),
+        (Scan(origin=[0.0, 0.0], points=[[1e6, 0.0]]), "scan.points"),
+        (Scan(origin=[-1e6, 0.0], points=[[1.0, 0.0]]), "scan.origin"),
+    ],
+)
+def test_rejected_scans_leave_the_map_unchanged(bad: object, field: str) -> None:
+    m = OnlineMap(config2d())
+    m.insert_scan(room_scan((0.0, 0.0), size=2.0))
+    before, n = snapshot(m), m.n_scans
+    with pytest.raises(OctolgpError, match=field):
+        m.insert_scan(bad)  # type: ignore[arg-type]
+    assert snapshot(m) == before
+    assert m.n_scans == n
+
+
+@pytest.mark.parametrize(
+    ("points", "field"),
+    [
+        ([[np.nan, 0.0]], "NaN"),
+        ([[0.0, 0.0, 0.0]], r"shape \(n, 2\)"),
+        ([[1e7, 0.0]], "addressable"),
+        ("abc", "numeric"),
+    ],
+)
+def test_bad_queries_raise(points: object, field: str) -> None:
+    m = OnlineMap(config2d())
+    with pytest.raises(OctolgpError, match=field):
+        m.occupancy(points)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"halo": 0.5}, "halo"),
+        ({"halo": -0.1}, "halo"),
+        ({"leaf_depth": 0}, "leaf_depth"),
+        ({"max_leaf_items": 1}, "max_leaf_items"),
+        ({"prune_free": 0.6}, "prune_free"),
+        ({"n_jobs": 0}, "n_jobs"),
+        ({"prune": 1}, "prune"),
+    ],
+)
+def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:
+    with pytest.raises(OctolgpError, match=field):
+        OnlineConfig(**kwargs)  # type: ignore[arg-type]
+
+
+def test_leaf_depth_beyond_tree_depth_is_refused() -> None:
+    with pytest.raises(OctolgpError, match="leaf_depth"):
+        MapConfig(tree_depth=10, online=OnlineConfig(leaf_depth=12))
+
+
+# ---------------------------------------------------------------- hyperparameters
+def test_hyperparameters_learnt_from_first_scans_then_fixed() -> None:
+    scans = [room_scan((x, 0.3 * x), n=120) for x in np.linspace(-2, 2, 5)]
+    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=3))
+    m = OnlineMap(config)
+    u1, u2 = m.insert_scan(scans[0]), m.insert_scan(scans[1])
+    assert u1.buffered
+    assert u2.buffered
+    assert len(m.store) == 0
+    u3 = m.insert_scan(scans[2])
+    assert not u3.buffered
+    assert "learning" in u3.stages
+    assert u3.refit_leaves > 0
+    hp = m.hyperparameters
+    assert hp is not None
+    m.insert_scans(scans[3:])
+    assert m.hyperparameters is hp
+    # the same as a map given those hyperparameters from the start
+    fixed = OnlineMap(dataclasses.replace(config, hyperparameters=hp))
+    fixed.insert_scans(scans)
+    assert snapshot(fixed) == snapshot(m)
+
+
+def test_queries_flush_the_learning_buffer() -> None:
+    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=50))
+    m = OnlineMap(config)
+    m.insert_scans([room_scan((0.0, 0.0), n=120), room_scan((1.0, 0.0), n=120)])
+    assert m.hyperparameters is None
+    assert m.occupancy([[4.0, 0.0]])[0] > 0.5
+    assert m.hyperparameters is not None
+    assert len(m.store) > 0
+
+
+def test_set_hyperparameters_refits_every_leaf() -> None:
+    scans = [room_scan((x, 0.0)) for x in (-1.0, 1.0)]
+    other = dataclasses.replace(HP, length_scale=0.5)
+    m = OnlineMap(config2d())
+    m.insert_scans(scans)
+    m.set_hyperparameters(other)
+    fresh = OnlineMap(dataclasses.replace(config2d(), hyperparameters=other))
+    fresh.insert_scans(scans)
+    assert {k: v[3:] for k, v in snapshot(m).items()} == {
+        k: v[3:] for k, v in snapshot(fresh).items()
+    }
+
+
+# ---------------------------------------------------------------- files
+def test_map_file_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    scans = [room_scan((x, 0.0)) for x in (-1.0, 1.0)]
+    path = tmp_path / "m.octolgp"
+    with OnlineMap(config2d(), path=path) as m:
+        m.insert_scans(scans)
+        want = snapshot(m)
+        probe = np.random.default_rng(0).uniform(-4, 4, (500, 2))
+        prob = m.occupancy(probe)
+    with OnlineMap.open(path) as back:
+        assert back.n_scans == 2
+        assert back.hyperparameters == HP
+        assert back.config == config2d()
+        assert snapshot(back) == want
+        assert np.array_equal(back.occupancy(probe), prob)
+        back.insert_scan(room_scan((0.0, 1.0)))  # keeps writing through
+    with OnlineMap.open(path) as again:
+        assert again.n_scans == 3
+    saved = tmp_path / "copy.octolgp"
+    again.save(saved)
+    assert snapshot(OnlineMap.open(saved)) == snapshot(again)
+
+
+def test_map_file_refuses_to_overwrite_and_rejects_foreign_files(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    path = tmp_path / "m.octolgp"
+    path.write_bytes(b"hello")
+    with pytest.raises(OctolgpError, match="already exists"):
+        OnlineMap(config2d(), path=path)
+    assert path.read_bytes() == b"hello"
+    with pytest.raises(OctolgpError, match="not an octolgp map"):
+        OnlineMap.open(path)
+    with pytest.raises(MapFileNotFound):
+        OnlineMap.open(tmp_path / "missing.octolgp")
+    other = tmp_path / "other.sqlite"
+    con = sqlite3.connect(other)
+    con.execute("CREATE TABLE t(x)")
+    con.commit()
+    con.close()
+    with pytest.raises(OctolgpError, match=r"corrupt|not an octolgp"):
+        OnlineMap.open(other)
