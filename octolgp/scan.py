@@ -152,3 +152,40 @@ class Scan:
         phi = p[2] + a
         pts = p[:2] + r[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
         return cls(origin=p[:2], points=pts, max_range=max_range, stamp=stamp)
+
+    def downsample(self, voxel: float) -> Scan:
+        """Keep one endpoint per voxel of edge ``voxel`` (a voxel-grid filter).
+
+        This is the voxel-grid filter that OctoMap users put in front of
+        ``insertPointCloud`` (PCL's ``VoxelGrid``), except that the kept point is
+        the voxel's first endpoint rather than its centroid, so every kept beam is
+        a real beam. No-returns (beams at least ``max_range`` long) are filtered
+        separately from returns, so a no-return never replaces a hit.
+
+        Parameters
+        ----------
+        voxel : float
+            Voxel edge, metres, > 0.
+
+        Returns
+        -------
+        Scan
+            The same origin, ``max_range`` and ``stamp``, fewer points, in their
+            original order.
+        """
+        if isinstance(voxel, bool) or not isinstance(voxel, int | float | np.floating | np.integer):
+            raise OctolgpError(f"Scan.downsample: voxel must be a number, got {voxel!r}")
+        if not np.isfinite(voxel) or voxel <= 0:
+            raise OctolgpError(f"Scan.downsample: voxel must be finite and > 0, got {voxel!r}")
+        keys = np.floor(self.points / float(voxel)).astype(np.int64)
+        if self.max_range is not None:
+            length = np.linalg.norm(self.points - self.origin, axis=1)
+            no_return = length >= self.max_range * (1.0 - 1e-9)
+            keys = np.concatenate([keys, no_return[:, None].astype(np.int64)], axis=1)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        return Scan(
+            origin=self.origin,
+            points=self.points[np.sort(first)],
+            max_range=self.max_range,
+            stamp=self.stamp,
+        )

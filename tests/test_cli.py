@@ -73,3 +73,54 @@ def test_bench_paper2d_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[
         next(line for line in table.splitlines() if line.startswith("OM_LGP")).split()[-1]
     )
     assert auc_lgp > 0.97
+
+
+INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
+
+
+def test_run_then_query_reads_the_map(tmp_path: Path) -> None:
+    from octolgp import OnlineMap
+
+    out = tmp_path / "m.octolgp"
+    argv = ["run", str(INTEL20), "--out", str(out), "--learn-scans", "5", "--quiet"]
+    assert main([*argv, "--limit", "12"]) == 0
+    with OnlineMap.open(out) as m:
+        assert m.n_scans == 12
+        centres, prob = m.occupied_voxels(0.5)
+        assert centres.shape[0] > 50
+    pts = tmp_path / "q.npy"
+    np.save(pts, np.vstack([centres[:10], [[500.0, 500.0]]]))
+    probs = tmp_path / "p.npy"
+    assert main(["query", str(out), "--points", str(pts), "--out", str(probs)]) == 0
+    got = np.load(probs)
+    assert np.array_equal(got[:10], prob[:10])
+    assert got[10] == 0.5
+    # an existing map is never overwritten silently
+    assert main(argv) == 2
+    assert main([*argv, "--overwrite"]) == 0
+    with OnlineMap.open(out) as m:
+        assert m.n_scans == 20
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "missing.log", "--out", "m.octolgp"],
+        ["run", "bad.log", "--out", "m.octolgp"],
+        ["run", "bad.log", "--out", "m.octolgp", "--resolution", "-1"],
+        ["query", "missing.octolgp", "--points", "q.npy", "--out", "p.npy"],
+        ["query", "bad.log", "--points", "bad.log", "--out", "p.npy"],
+    ],
+)
+def test_run_and_query_bad_input_exit_2(argv: list[str], tmp_path: Path) -> None:
+    (tmp_path / "bad.log").write_text("FLASER 3 1.0 1.0\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "octolgp.cli", *argv],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in proc.stderr

@@ -48,7 +48,7 @@ NO_RETURN_RANGE = 32.70
 _SCAN_NAME = re.compile(r"scan(\d+)\.3d(?:\.(?:xz|gz|bz2))?")
 _POINT_FILE = re.compile(r"(.+)\.3d(?:\.(?:xz|gz|bz2))?", re.IGNORECASE)
 _LEGACY_HEADER = re.compile(r"\s*\d+\s*x\s*\d+\s*")
-_CHUNK_BYTES = 1 << 22  # lines handed to one np.loadtxt call
+_CHUNK_BYTES = 1 << 22  # about this many bytes of lines per np.loadtxt call
 _DIAGNOSE_LINES = 32  # a failing block this small is checked line by line
 _READ_ERRORS = (OSError, EOFError, lzma.LZMAError, zlib.error)
 
@@ -266,6 +266,8 @@ class ThreeDTKReader:
         """Read, filter and transform one scan at a time."""
         for path, T in zip(self.files, self.transforms, strict=True):
             xyz = self._read_points(path)
+            if not xyz.size:
+                raise OctolgpError(f"3DTK scan {path}: no points")
             r = np.linalg.norm(xyz, axis=1) * CM
             keep = r >= self.min_range
             self.near_field += int(keep.size - np.count_nonzero(keep))

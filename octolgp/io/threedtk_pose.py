@@ -126,7 +126,9 @@ def read_pose(path: str | Path) -> FloatArray:
 def read_frames(path: str | Path) -> FloatArray:
     """Read a ``.frames`` file: one ``T_world_scan`` per ICP step, shape (k, 4, 4).
 
-    In octolgp's frame; the last one is the final registration.
+    In octolgp's frame; the last one is the final registration. The files keep 6 significant
+    digits, so each rotation is replaced by the nearest orthonormal one (this moves a point
+    30 m away by under 0.1 mm).
 
     Raises
     ------
@@ -146,5 +148,8 @@ def read_frames(path: str | Path) -> FloatArray:
         rigid = np.abs(R.T @ R - np.eye(3)).max() < _ORTHO_TOL and np.linalg.det(R) > 0
         if not rigid or not np.array_equal(T[3], [0.0, 0.0, 0.0, 1.0]):
             raise OctolgpError(f"3DTK frames file {p}:{line_no}: not a rigid transform")
+        # Nearest rotation (polar decomposition), so that beam lengths are kept exactly.
+        U, _, Vt = np.linalg.svd(R)
+        T[:3, :3] = U @ Vt
         frames.append(T)
     return from_3dtk_pose(np.stack(frames))
