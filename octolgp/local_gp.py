@@ -108,6 +108,41 @@ def predict_latent(gp: LocalGP, X: FloatArray) -> tuple[FloatArray, FloatArray]:
     return mean, np.maximum(var, 0.0)
 
 
+def fit_predict(
+    items: QuadratureSet, y: FloatArray, hp: Hyperparameters, X: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Fit on items and predict at one set of test points, without forming ``L⁻¹``.
+
+    The same posterior as :func:`fit_local_gp` then :func:`predict_latent`, for a
+    GP that predicts once (an online leaf): one triangular solve with the test
+    covariances replaces the inverse factor.
+
+    Parameters
+    ----------
+    items : QuadratureSet
+        ``n`` training items.
+    y : ndarray of shape (n,)
+        Targets.
+    hp : Hyperparameters
+    X : ndarray of shape (m, d)
+        Test points, metres, world frame.
+
+    Returns
+    -------
+    mean, var : ndarray of shape (m,)
+        Latent posterior (variance excludes the noise).
+    """
+    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
+    K[np.diag_indices_from(K)] += hp.noise_variance
+    L = _cholesky(K)
+    weights = cho_solve((L, True), y, check_finite=False)
+    Ks = item_covariance(points_set(X), items, hp.length_scale, hp.signal_variance)
+    mean = Ks @ weights
+    V = solve_triangular(L, Ks.T, lower=True, check_finite=False)  # (n, m)
+    var = hp.signal_variance - np.einsum("ij,ij->j", V, V)
+    return mean, np.maximum(var, 0.0)
+
+
 def log_marginal_likelihood(
     items: QuadratureSet, y: FloatArray, log_theta: FloatArray, R: FloatArray | None = None
 ) -> tuple[float, FloatArray]:

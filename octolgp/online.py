@@ -53,7 +53,7 @@ from octolgp.keys import addressable_mask, addressable_range
 from octolgp.learning import learn_hyperparameters
 from octolgp.leaves import LeafGrid, assign_points, assign_segments
 from octolgp.lgp import LocalGPMap, fit_clusters
-from octolgp.local_gp import fit_local_gp, predict_latent
+from octolgp.local_gp import fit_predict
 from octolgp.partition import partition
 from octolgp.plsc import occupancy_probability
 from octolgp.scan import FloatArray, Scan, as_points
@@ -152,10 +152,12 @@ def predict_leaf(
             keep = np.linspace(0, fs.shape[0] - 1, cap).round().astype(np.int64)
             fs, fe = fs[keep], fe[keep]
         items, y = _items_and_targets(hits, fs, fe, config, spacing)
-        return predict_latent(fit_local_gp(items, y, hp), centres)
+        return fit_predict(items, y, hp, centres)
     # the paper's iterative k-means under the cluster cap, nearest-centre prediction
     data = TrainingData(hits, fs, fe, np.full(fs.shape[0], -1, dtype=np.int64))
-    clusters = partition(data, config)
+    # a lattice at the map resolution is fine enough for a leaf's Voronoi cells
+    cells = int(np.ceil(float(np.ptp(centres, axis=0).max()) / config.resolution)) + 3
+    clusters = partition(data, config, cells=cells)
     gps = fit_clusters(data, clusters, config, hp)
     return LocalGPMap(config, hp, clusters=clusters, gps=gps)._latent_nearest(centres)
 

@@ -173,7 +173,9 @@ def voronoi_boxes(
     return box_lo - step / 2.0, box_hi + step / 2.0
 
 
-def partition(data: TrainingData, config: MapConfig, overlap: float | None = None) -> list[Cluster]:
+def partition(
+    data: TrainingData, config: MapConfig, overlap: float | None = None, cells: int | None = None
+) -> list[Cluster]:
     """Partition training data into overlapping clusters.
 
     Parameters
@@ -184,6 +186,9 @@ def partition(data: TrainingData, config: MapConfig, overlap: float | None = Non
         and ``resolution``.
     overlap : float, optional
         Overrides ``config.partition.overlap`` (0 gives regions that only touch).
+    cells : int, optional
+        Lattice points along the longest axis for the Voronoi cells (default 256
+        in 2D, 48 in 3D; the online map uses one per voxel of a leaf).
 
     Returns
     -------
@@ -213,7 +218,8 @@ def partition(data: TrainingData, config: MapConfig, overlap: float | None = Non
     centres = np.array([hits[g].mean(axis=0) for g in groups])
     everything = np.concatenate([hits, data.seg_start, data.seg_end])
     dom_lo, dom_hi = everything.min(axis=0), everything.max(axis=0)
-    cells = 256 if data.dim == 2 else 48
+    if cells is None:
+        cells = 256 if data.dim == 2 else 48
     vor_lo, vor_hi = voronoi_boxes(centres, dom_lo, dom_hi, cells)
     min_extent = 2.0 * config.resolution
     min_piece = 0.5 * config.resolution

@@ -12,6 +12,7 @@ from octolgp.errors import OctolgpError
 from octolgp.kernels import QuadratureSet, item_covariance, points_set, quadrature_set
 from octolgp.local_gp import (
     fit_local_gp,
+    fit_predict,
     log_marginal_likelihood,
     loo_log_predictive,
     loo_predictions,
@@ -69,6 +70,22 @@ def test_prediction_matches_sklearn(d: int) -> None:
     np.testing.assert_allclose(mean, ref_mean, rtol=0, atol=1e-8)
     np.testing.assert_allclose(var, ref_std**2, rtol=0, atol=1e-8)
     assert np.all(var <= HP.signal_variance)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_fit_predict_matches_sklearn_and_the_two_step_path(d: int) -> None:
+    X, y = _point_data(d)
+    Xs = np.random.default_rng(3).uniform(-2.5, 2.5, (40, d))
+    mean, var = fit_predict(points_set(X), y, HP, Xs)
+    ref_mean, ref_std = _sklearn_gp(HP).fit(X, y).predict(Xs, return_std=True)
+    np.testing.assert_allclose(mean, ref_mean, rtol=0, atol=1e-8)
+    np.testing.assert_allclose(var, ref_std**2, rtol=0, atol=1e-8)
+    # with segments too: the same posterior as fit_local_gp + predict_latent
+    a = X[:5]
+    items = quadrature_set(X, a, a + 0.7, 0.3)
+    y2 = np.concatenate([y, -np.ones(5)])
+    two_step = predict_latent(fit_local_gp(items, y2, HP), Xs)
+    np.testing.assert_allclose(fit_predict(items, y2, HP, Xs), two_step, rtol=0, atol=1e-10)
 
 
 def test_prediction_via_quadrature_set_of_points_matches_points_set() -> None:
