@@ -415,3 +415,22 @@ def test_map_file_refuses_to_overwrite_and_rejects_foreign_files(tmp_path) -> No
     con.close()
     with pytest.raises(OctolgpError, match=r"corrupt|not an octolgp"):
         OnlineMap.open(other)
+
+
+def test_downsample_keeps_one_real_beam_per_voxel() -> None:
+    rng = np.random.default_rng(5)
+    pts = rng.uniform(-2, 2, (2000, 3))
+    far = np.array([[30.0, 0.0, 0.0], [30.0, 0.01, 0.0]])  # two no-returns, one voxel
+    scan = Scan(origin=[0.0, 0.0, 0.0], points=np.vstack([pts, far]), max_range=25.0)
+    small = scan.downsample(0.5)
+    keys = np.floor(small.points / 0.5).astype(int)
+    ret = np.linalg.norm(small.points, axis=1) < 25.0
+    assert np.unique(keys[ret], axis=0).shape[0] == int(ret.sum())  # one return per voxel
+    assert int((~ret).sum()) == 1  # the no-returns keep their own voxel entry
+    assert np.unique(np.floor(pts / 0.5), axis=0).shape[0] == int(ret.sum())
+    # every kept point is an original beam endpoint, in the original order
+    idx = [int(np.flatnonzero((scan.points == p).all(axis=1))[0]) for p in small.points]
+    assert idx == sorted(idx)
+    assert small.max_range == 25.0
+    with pytest.raises(OctolgpError, match="voxel"):
+        scan.downsample(0.0)
