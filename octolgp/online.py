@@ -181,6 +181,12 @@ class OnlineMap:
         With a path the map is persisted in that SQLite file after every
         :meth:`insert_scan`; see :mod:`octolgp.mapfile`.
 
+    Notes
+    -----
+    In this version every leaf stays in RAM: ``MapConfig.memory_budget_mb`` is
+    stored with the map but not yet enforced by eviction. Memory still saturates
+    on revisits because each leaf's evidence is bounded (see the module notes).
+
     Examples
     --------
     >>> import numpy as np
