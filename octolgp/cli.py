@@ -1,4 +1,4 @@
-"""Command line: ``octolgp simulate | run | query | bench``.
+"""Command line: ``octolgp simulate | run | replay | query | bench``.
 
 The CLI is the only place that exits. A user error prints one line on stderr and
 exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
@@ -18,7 +18,8 @@ from octolgp.errors import OctolgpError
 
 EXAMPLES = """examples:
   octolgp simulate paper2d --out paper2d.npz --seed 0
-  octolgp run data/intel_lab/intel-corrected.log.gz --out intel.octolgp
+  octolgp run data/intel_lab/intel-corrected.log.gz --out intel.octolgp --rerun-save intel.rrd
+  octolgp replay intel.rrd --out intel2.octolgp
   octolgp query intel.octolgp --points pts.npy --out prob.npy
   octolgp bench paper2d --out bench_out
 """
@@ -66,7 +67,26 @@ def _first_and_rest(path: str, fmt: str | None) -> tuple[Any, Iterator[Any]]:
     return first, itertools.chain([first], it)
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
+def _recording(args: argparse.Namespace) -> Any:
+    """The Rerun recording the options ask for, or ``None``."""
+    wants = [args.rerun_save, args.rerun_connect, args.rerun_serve]
+    if not any(wants):
+        return None
+    import rerun as rr
+
+    rec = rr.RecordingStream("octolgp")
+    if args.rerun_save:
+        rec.save(args.rerun_save)
+    elif args.rerun_connect:
+        rec.connect_grpc(args.rerun_connect)
+    else:
+        url = rec.serve_grpc()
+        print(f"serving the recording at {url} (open it with: rerun --connect {url})")
+    return rec
+
+
+def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> int:
+    """Insert scans one by one into a new map file (progress bar in scans/s)."""
     import itertools
 
     from tqdm import tqdm
@@ -77,7 +97,6 @@ def _cmd_run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not args.overwrite:
         raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
-    first, scans = _first_and_rest(args.scans, args.format)
     if args.limit is not None:
         scans = itertools.islice(scans, args.limit)
     config = MapConfig(
@@ -85,18 +104,56 @@ def _cmd_run(args: argparse.Namespace) -> int:
         resolution=args.resolution,
         online=OnlineConfig(n_jobs=args.jobs, learn_scans=args.learn_scans),
     )
+    rec = _recording(args)
+    sink = None
+    if rec is not None:
+        from octolgp.viz.stream import RerunSink
+
+        sink = RerunSink(rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty)
     if out.exists():
         out.unlink()
     out.parent.mkdir(parents=True, exist_ok=True)
-    with OnlineMap(config, path=out) as m:
-        bar = tqdm(scans, unit="scan", disable=args.quiet or None, dynamic_ncols=True)
-        for scan in bar:  # one iteration per scan
-            update = m.insert_scan(scan)
-            bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
-        m.flush()
-        n_leaves, n_scans = len(m.store), m.n_scans
+    try:
+        with OnlineMap(config, path=out, sink=sink) as m:
+            bar = tqdm(scans, unit="scan", disable=args.quiet or None, dynamic_ncols=True)
+            for scan in bar:  # one iteration per scan
+                update = m.insert_scan(scan)
+                bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
+            m.flush()
+            n_leaves, n_scans = len(m.store), m.n_scans
+    finally:
+        if rec is not None:
+            rec.flush()
+            rec.disconnect()
     print(f"wrote {out}: {n_scans} scans, {n_leaves} leaves, hyperparameters {m.hyperparameters}")
     return 0
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    first, scans = _first_and_rest(args.scans, args.format)
+    return _map_scans(scans, first, args)
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    import itertools
+
+    from octolgp.io.rrd import read_rrd
+
+    reader = read_rrd(
+        args.recording,
+        points=args.points,
+        pose=args.pose,
+        timeline=args.timeline,
+        max_range=args.max_range,
+    )
+    it = iter(reader)
+    first = next(it, None)
+    if first is None:
+        raise OctolgpError(f"recording {args.recording!r} holds no scans")
+    status = _map_scans(itertools.chain([first], it), first, args)
+    for note in getattr(reader, "notes", []):
+        print(f"note: {note}")
+    return status
 
 
 def _cmd_query(args: argparse.Namespace) -> int:
@@ -132,6 +189,25 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _mapping_options(p: argparse.ArgumentParser) -> None:
+    """Options shared by the subcommands that map scans online."""
+    p.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
+    p.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    p.add_argument("--jobs", type=_positive_int, default=1, help="threads refitting leaves")
+    p.add_argument(
+        "--learn-scans", type=_positive_int, default=10, help="scans to learn hyperparameters on"
+    )
+    p.add_argument("--limit", type=_positive_int, default=None, help="stop after N scans")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    rr = p.add_mutually_exclusive_group()
+    rr.add_argument("--rerun-save", metavar="REC.rrd", help="stream the mapping to a recording")
+    rr.add_argument("--rerun-connect", metavar="URL", help="stream to a viewer (rerun+http://...)")
+    rr.add_argument("--rerun-serve", action="store_true", help="serve the stream over gRPC")
+    p.add_argument("--rerun-rays", type=int, default=0, help="log every k-th beam as a ray")
+    p.add_argument("--rerun-uncertainty", action="store_true", help="log the variance layer")
+
+
 class _Parser(argparse.ArgumentParser):
     """An argument parser whose usage errors are one line on stderr, exit 2."""
 
@@ -159,18 +235,21 @@ def make_parser() -> argparse.ArgumentParser:
     sim.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser("run", help="map a scan log online, scan by scan")
-    run.add_argument("scans", help="scan log: npz scan log or CARMEN .log/.clf[.gz]")
-    run.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
-    run.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    run.add_argument("scans", help="scan log: npz, CARMEN .log/.clf[.gz], 3DTK folder, .rrd")
     run.add_argument("--format", default=None, help="scan log format (default: guessed)")
-    run.add_argument("--jobs", type=_positive_int, default=1, help="threads refitting leaves")
-    run.add_argument(
-        "--learn-scans", type=_positive_int, default=10, help="scans to learn hyperparameters on"
-    )
-    run.add_argument("--limit", type=_positive_int, default=None, help="stop after N scans")
-    run.add_argument("--overwrite", action="store_true", help="replace an existing --out")
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    _mapping_options(run)
     run.set_defaults(func=_cmd_run)
+
+    replay = sub.add_parser("replay", help="rebuild a map from a Rerun recording")
+    replay.add_argument("recording", help="Rerun recording (.rrd)")
+    replay.add_argument("--points", default=None, help="points entity (default: found)")
+    replay.add_argument("--pose", default=None, help="Transform3D entity (default: found)")
+    replay.add_argument("--timeline", default=None, help="timeline (default: found)")
+    replay.add_argument(
+        "--max-range", type=_positive_float, default=None, help="no-return range, metres"
+    )
+    _mapping_options(replay)
+    replay.set_defaults(func=_cmd_replay)
 
     query = sub.add_parser("query", help="P(occupied) at query points of a map file")
     query.add_argument("map", help="map file written by run")

@@ -241,6 +241,9 @@ class OnlineConfig:
         clamping thresholds by default).
     n_jobs : int
         Threads refitting leaves in parallel. Results do not depend on it.
+    free_voxels : int
+        A leaf keeps one free piece per cube of this many voxels on an edge (by
+        the piece's end); 1 keeps one per voxel.
     """
 
     leaf_depth: int | None = None
@@ -251,6 +254,7 @@ class OnlineConfig:
     prune_free: float = 0.1192
     prune_occupied: float = 0.971
     n_jobs: int = 1
+    free_voxels: int = 1
 
     def __post_init__(self) -> None:
         if self.leaf_depth is not None:
@@ -269,6 +273,7 @@ class OnlineConfig:
                 "OnlineConfig.prune_free must be < 0.5 < OnlineConfig.prune_occupied"
             )
         _integer("OnlineConfig", "n_jobs", self.n_jobs, 1)
+        _integer("OnlineConfig", "free_voxels", self.free_voxels, 1, 64)
 
 
 @dataclass(frozen=True, slots=True)

@@ -93,9 +93,9 @@ class LeafGrid:
         """Leaf index (per axis) of each point, shape (n, d); points must be addressable."""
         return np.floor((points - self._origin) / self.edge).astype(np.int64)
 
-    def voxel_keys(self, points: FloatArray) -> IntArray:
-        """Packed voxel keys of points, clamped to the key range, shape (n,)."""
-        keys = np.floor((points - self._origin) / self.resolution).astype(np.int64)
+    def voxel_keys(self, points: FloatArray, scale: int = 1) -> IntArray:
+        """Packed keys of the voxels (of edge ``scale`` resolutions) holding points, shape (n,)."""
+        keys = np.floor((points - self._origin) / (self.resolution * scale)).astype(np.int64)
         return pack_keys(np.clip(keys, 0, (1 << self.tree_depth) - 1))
 
     def box(self, index: IntArray) -> tuple[FloatArray, FloatArray]:

@@ -162,6 +162,20 @@ def predict_leaf(
     return LocalGPMap(config, hp, clusters=clusters, gps=gps)._latent_nearest(centres)
 
 
+class NullSink:
+    """Where map events go when nothing listens: every method does nothing.
+
+    The map calls its sink unconditionally (no branches in the pipeline); a
+    :class:`octolgp.viz.stream.RerunSink` logs the same events to Rerun.
+    """
+
+    def on_scan(self, m: OnlineMap, scan: Scan, index: int) -> None:
+        """An accepted scan (before buffering or integration)."""
+
+    def on_update(self, m: OnlineMap, update: ScanUpdate, keys: list[int]) -> None:
+        """Leaves ``keys`` were refitted by the update."""
+
+
 def _group(packed: IntArray) -> tuple[IntArray, IntArray, IntArray]:
     """Sort order, unique values and run bounds of packed keys."""
     order = np.argsort(packed, kind="stable")
@@ -180,6 +194,12 @@ class OnlineMap:
     path : str or Path, optional
         With a path the map is persisted in that SQLite file after every
         :meth:`insert_scan`; see :mod:`octolgp.mapfile`.
+    recording : rerun.RecordingStream, optional
+        Stream every scan and every refitted leaf to this Rerun recording
+        (:class:`octolgp.viz.stream.RerunSink` with its defaults).
+    sink : object, optional
+        Any object with the methods of :class:`NullSink` (for example a
+        ``RerunSink`` with options); overrides ``recording``.
 
     Notes
     -----
@@ -201,7 +221,14 @@ class OnlineMap:
     True
     """
 
-    def __init__(self, config: MapConfig | None = None, path: str | Path | None = None) -> None:
+    def __init__(
+        self,
+        config: MapConfig | None = None,
+        path: str | Path | None = None,
+        *,
+        recording: Any = None,
+        sink: Any = None,
+    ) -> None:
         if config is None:
             config = MapConfig()
         if not isinstance(config, MapConfig):
@@ -217,6 +244,11 @@ class OnlineMap:
         # voxel centres relative to a leaf's low corner, flat voxel order
         self._centre_offsets = self.grid.voxel_centres(zero[0]) - self.grid.box(zero)[0]
         self._file: Any = None
+        if recording is not None:
+            from octolgp.viz.stream import RerunSink
+
+            sink = RerunSink(recording)
+        self.sink: Any = NullSink() if sink is None else sink
         # Evidence is deduplicated per leaf (Leaf.add_evidence), in time order, so a
         # scan-level dedup would only make one-by-one and all-at-once insertion differ.
         self._raw_config = dataclasses.replace(
@@ -309,6 +341,7 @@ class OnlineMap:
         """
         t0 = time.perf_counter()
         scan = self._check_scan(scan)
+        self.sink.on_scan(self, scan, self.n_scans + 1)
         if self.hyperparameters is None:
             self._buffer.append(scan)
             if len(self._buffer) < self.config.online.learn_scans:
@@ -405,7 +438,7 @@ class OnlineMap:
         if self._file is not None:
             self._file.write_leaves(self, keys, n_scans=self.n_scans, scans=scans)
         stages["store"] = time.perf_counter() - t
-        return ScanUpdate(
+        update = ScanUpdate(
             scan=self.n_scans,
             touched_leaves=len(touched),
             refit_leaves=len(keys),
@@ -416,6 +449,8 @@ class OnlineMap:
             n_leaves=len(self.store),
             memory_bytes=self.memory_bytes(),
         )
+        self.sink.on_update(self, update, keys)
+        return update
 
     def _gather(self, data: TrainingData) -> tuple[list[tuple[int, Leaf]], list[int], int]:
         """Copies of the touched leaves with the new evidence added (the store is untouched).
@@ -430,7 +465,7 @@ class OnlineMap:
         )
         hits = data.hits[h_idx]
         hit_keys = grid.voxel_keys(hits)
-        free_keys = grid.voxel_keys(b)
+        free_keys = grid.voxel_keys(b, self.config.online.free_voxels)
         h_order, h_keys, h_bounds = _group(grid.pack(h_leaf))
         s_order, s_keys, s_bounds = _group(grid.pack(s_leaf))
         touched = np.union1d(h_keys, s_keys)
@@ -465,7 +500,7 @@ class OnlineMap:
         oc = config.online
 
         def fit(leaf: Leaf) -> Leaf:
-            centres = self._centre_offsets + self.grid.box(leaf.index[None, :])[0]
+            centres = self.voxel_centres(leaf)
             mean, var = predict_leaf(leaf, centres, config, hp)
             prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
             pruned = False
@@ -562,6 +597,10 @@ class OnlineMap:
         prior = 1.0 if self.hyperparameters is None else self.hyperparameters.signal_variance
         return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
 
+    def voxel_centres(self, leaf: Leaf) -> FloatArray:
+        """Centres of a leaf's voxels, shape (V, d), in the order of its value arrays."""
+        return self._centre_offsets + self.grid.box(leaf.index[None, :])[0]
+
     def leaves(self) -> Iterator[tuple[int, Leaf]]:
         """``(packed leaf key, leaf)`` for every leaf, in key order."""
         return self.store.items()
@@ -579,7 +618,7 @@ class OnlineMap:
         for _, leaf in self.store.items():  # one iteration per leaf
             if leaf.prob.size == 0:
                 continue
-            cs.append(self._centre_offsets + self.grid.box(leaf.index[None, :])[0])
+            cs.append(self.voxel_centres(leaf))
             ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
         if not cs:
             return np.zeros((0, self.config.dim)), np.zeros(0)

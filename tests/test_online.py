@@ -434,3 +434,18 @@ def test_downsample_keeps_one_real_beam_per_voxel() -> None:
     assert small.max_range == 25.0
     with pytest.raises(OctolgpError, match="voxel"):
         scan.downsample(0.0)
+
+
+def test_coarser_free_voxels_keep_fewer_pieces() -> None:
+    scans = [room_scan((x, 0.2 * x), n=180) for x in (-2.0, 0.0, 2.0)]
+    fine = OnlineMap(config2d())
+    coarse = OnlineMap(config2d(free_voxels=3))
+    fine.insert_scans(scans)
+    coarse.insert_scans(scans)
+    n_fine = sum(leaf.free_start.shape[0] for _, leaf in fine.leaves())
+    n_coarse = sum(leaf.free_start.shape[0] for _, leaf in coarse.leaves())
+    assert n_coarse < 0.6 * n_fine
+    for key, leaf in coarse.leaves():  # hits are untouched by the free-piece rule
+        assert np.array_equal(leaf.hit_keys, fine.store.get(key).hit_keys)  # type: ignore[union-attr]
+    with pytest.raises(OctolgpError, match="free_voxels"):
+        OnlineConfig(free_voxels=0)

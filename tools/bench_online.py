@@ -15,6 +15,8 @@ Parts (``--parts``, comma-separated; all by default):
 ``replay``
     The Intel log replayed three times over: median ``insert_scan`` time and map
     memory per pass, and OctoMap's median insertion time for the same scans.
+``3d-heldout`` (not in the default set)
+    3DTK leave one scan out: AUC and time per scan for ``free_voxels`` 1, 2, 3.
 ``3d``
     The 3DTK scans (``../shared/data/3dtk_example_scans``) at 0.2 m: time per scan
     after a voxel-grid filter, beside OctoMap's time for the same filtered scans.
@@ -217,6 +219,46 @@ def part_3d(jobs: int, voxel: float) -> dict[str, object]:
     return {"rows": [r[:7] for r in rows], "stages": stages}
 
 
+def part_3d_heldout(jobs: int, voxel: float) -> dict[str, object]:
+    """3DTK leave-one-scan-out AUC and time for OnlineConfig.free_voxels 1, 2, 3, and OctoMap."""
+    if not THREEDTK.is_dir():
+        print(f"\n## 3DTK held out: skipped, {THREEDTK} is absent")
+        return {}
+    raw: list[Scan] = list(load_scans(THREEDTK))
+    scans = [s.downsample(voxel) for s in raw]
+    config = MapConfig(dim=3, resolution=0.2)
+    hp = learn_hyperparameters(scans[:1], config)
+    print("\n## 3DTK, leave one scan out (every 5th held-out test point), 0.2 m")
+    print("| held out | method | AUC | unknown fraction | seconds per inserted scan |")
+    print("|---|---|---|---|---|")
+    rows = []
+    for hold in range(len(scans)):
+        train = [s for i, s in enumerate(scans) if i != hold]
+        pts, labels = heldout_points([raw[hold]], np.random.default_rng(0), free_per_beam=1)
+        pts, labels = pts[::5], labels[::5]
+        if octomap_available():
+            ref = OctomapReference(0.2, 3)
+            t = [ref.insert_scan(s) for s in train]
+            r = evaluate(ref, pts, labels)
+            print(
+                f"| {hold} | OctoMap | {r['auc']:.4f} | {r['unknown_fraction']:.3f} | "
+                + " / ".join(f"{x:.2f}" for x in t)
+                + " |"
+            )
+        for fv in (1, 2, 3):
+            online = OnlineConfig(n_jobs=jobs, free_voxels=fv)
+            m = OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=hp, online=online))
+            t = [m.insert_scan(s).seconds for s in train]
+            r = evaluate(m, pts, labels)
+            m.close()
+            rows.append((hold, fv, r["auc"], t))
+            print(
+                f"| {hold} | octolgp free_voxels={fv} | {r['auc']:.4f} | "
+                f"{r['unknown_fraction']:.3f} | " + " / ".join(f"{x:.2f}" for x in t) + " |"
+            )
+    return {"rows": rows}
+
+
 def main() -> int:
     """Run the chosen parts and print their tables."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -239,6 +281,8 @@ def main() -> int:
         out["replay"] = part_replay(args.jobs, args.passes)
     if "3d" in parts:
         out["3d"] = part_3d(args.jobs, args.voxel)
+    if "3d-heldout" in parts:
+        out["3d-heldout"] = part_3d_heldout(args.jobs, args.voxel)
     if args.out:
         Path(args.out).mkdir(parents=True, exist_ok=True)
         (Path(args.out) / "results.json").write_text(json.dumps(out, indent=1, default=str))

@@ -1,0 +1,1 @@
+"""Visualisation and streaming (Rerun)."""
