@@ -72,7 +72,9 @@ def main() -> int:
             sizes.append(rrd.stat().st_size)
     t_off, t_on = float(np.median(off)), float(np.median(on))
     size = float(np.median(sizes))
-    print(f"Intel lab, first {len(scans)} scans, 0.1 m, {args.jobs} threads, rays every {args.rays}")
+    print(
+        f"Intel lab, first {len(scans)} scans, 0.1 m, {args.jobs} threads, rays every {args.rays}"
+    )
     print("| logging | median s | per scan ms |")
     print("|---|---|---|")
     print(f"| off (null sink) | {t_off:.2f} | {1e3 * t_off / len(scans):.1f} |")

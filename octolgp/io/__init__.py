@@ -8,6 +8,10 @@ Supported formats (``format=`` names):
   (:mod:`octolgp.io.carmen`), streamed line by line.
 - ``"3dtk"``: a directory of 3DTK ``scanNNN.3d[.xz]`` files with ``.frames``/``.pose`` poses, or
   one such file (:mod:`octolgp.io.threedtk`), streamed scan by scan.
+- ``"rrd"``: a Rerun recording ``.rrd`` (:mod:`octolgp.io.rrd`), streamed chunk by chunk: the
+  exact scans that :func:`~octolgp.io.rrd.log_scan` wrote, else the ``Points3D``/``Points2D``
+  rows of any recording posed by its ``Transform3D``. :func:`~octolgp.io.rrd.read_rrd` takes
+  the options (points entity, pose entity, timeline, ``max_range``).
 """
 
 from __future__ import annotations
@@ -20,24 +24,28 @@ from numpy.typing import ArrayLike
 from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.io.carmen import CarmenReader, looks_like_carmen, read_carmen
 from octolgp.io.npz import read_npz, read_truth, write_npz
+from octolgp.io.rrd import RrdScanReader, log_scan, looks_like_rrd, read_rrd
 from octolgp.io.threedtk import ThreeDTKReader, looks_like_3dtk, read_3dtk
 from octolgp.scan import Scan
 
 __all__ = [
     "SCAN_FORMATS",
     "CarmenReader",
+    "RrdScanReader",
     "ThreeDTKReader",
     "detect_format",
     "load_scans",
+    "log_scan",
     "read_3dtk",
     "read_carmen",
     "read_npz",
+    "read_rrd",
     "read_truth",
     "save_scan_log",
     "write_npz",
 ]
 
-SCAN_FORMATS = ("npz", "carmen", "3dtk")
+SCAN_FORMATS = ("npz", "carmen", "3dtk", "rrd")
 """Names accepted by ``load_scans(..., format=...)``."""
 
 _CARMEN_SUFFIXES = (".log", ".clf")
@@ -80,7 +88,10 @@ def detect_format(path: str | Path) -> str:
         return "npz"
     if suffixes and suffixes[-1] in _CARMEN_SUFFIXES:
         return "carmen"
-    # Then the magic bytes: a zip archive is an npz, text (or gzipped text) may be CARMEN.
+    if suffixes and suffixes[-1] == ".rrd":
+        return "rrd"
+    # Then the magic bytes: a zip archive is an npz, RRF2 a Rerun recording, text (or gzipped
+    # text) may be CARMEN.
     try:
         with open(p, "rb") as fh:
             magic = fh.read(4)
@@ -88,6 +99,8 @@ def detect_format(path: str | Path) -> str:
         raise OctolgpError(f"scan log {str(p)!r} cannot be read: {exc}") from None
     if magic == _ZIP_MAGIC:
         return "npz"
+    if looks_like_rrd(p):
+        return "rrd"
     if (magic[:2] == _GZIP_MAGIC or magic.isascii()) and magic and looks_like_carmen(p):
         return "carmen"
     raise OctolgpError(
@@ -110,11 +123,14 @@ def load_scans(
         CARMEN and 3DTK: skip malformed laser or point lines and count them (the returned
         :class:`~octolgp.io.carmen.CarmenReader` or
         :class:`~octolgp.io.threedtk.ThreeDTKReader` has ``skipped``) instead of raising.
+        Rerun: skip invalid scans (:class:`~octolgp.io.rrd.RrdScanReader` has ``skipped`` and
+        ``notes``); a cut-off tail is always skipped and reported there.
 
     Returns
     -------
     Iterator of Scan
-        In file order. CARMEN logs stream; an npz log is validated at the call.
+        In file order (a Rerun recording: timeline order). CARMEN logs and Rerun recordings
+        stream; an npz log is validated at the call.
 
     Raises
     ------
@@ -135,6 +151,8 @@ def load_scans(
         return CarmenReader(p, skip_bad=skip_bad)
     if format == "3dtk":
         return ThreeDTKReader(p, skip_bad=skip_bad)
+    if format == "rrd":
+        return RrdScanReader(p, skip_bad=skip_bad)
     raise OctolgpError(f"load_scans: unknown format {format!r} (supported: {SCAN_FORMATS})")
 
 

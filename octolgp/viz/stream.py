@@ -128,6 +128,8 @@ class RerunSink:
         if leaf.pruned:
             lo, hi = grid.box(leaf.index[None, :])
             self._log_box(path, lo, hi, float(leaf.prob[0]))
+            if self.uncertainty:  # a pruned leaf is confident: no variance layer
+                self.rec.log(f"world/map/variance/{key}", rr.Clear(recursive=False))
             return
         centres = m.voxel_centres(leaf)
         prob = leaf.prob.astype(np.float64)
