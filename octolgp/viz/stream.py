@@ -10,9 +10,10 @@ carry stamps):
     Optional, decimated beams as line strips (sensor frame).
 ``world/map/leaves/<packed leaf key>``
     3D: the leaf's occupied voxels (P > 0.5) as ``Boxes3D``, coloured by
-    probability. 2D: every voxel of the leaf as a ``Points3D`` layer at z = 0,
-    grey level ``1 − P`` (occupied dark), the usual occupancy-grid picture. A
-    pruned leaf is one box. A leaf is logged only in the scans that refit it, so a
+    probability; a pruned occupied leaf is one box, a pruned free one is cleared.
+    2D: the leaf as one textured quad (``Mesh3D``) at z = 0 whose side × side
+    texture is the grey level ``1 − P`` (occupied dark), the usual occupancy-grid
+    picture; the quad is static, each refit sends 3 bytes per voxel. A leaf is logged only in the scans that refit it, so a
     10,000-leaf map costs per scan only what changed.
 ``world/map/variance/<packed leaf key>``
     Optional uncertainty layer: latent variance / σf² per voxel.
@@ -29,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
+import rerun.components as rrc
 
 from octolgp.scan import FloatArray, Scan
 
@@ -91,6 +93,7 @@ class RerunSink:
         self.rays = int(rays)
         self.uncertainty = bool(uncertainty)
         self._blueprint = blueprint
+        self._tiles: set[str] = set()
 
     def on_scan(self, m: OnlineMap, scan: Scan, index: int) -> None:
         """Log an accepted scan (pose, points, exact copy, optional rays)."""
@@ -125,7 +128,7 @@ class RerunSink:
     def _log_leaf(self, m: OnlineMap, key: int, leaf: Leaf) -> None:
         grid = m.grid
         path = f"world/map/leaves/{key}"
-        if leaf.pruned:
+        if leaf.pruned and m.config.dim == 3:
             lo, hi = grid.box(leaf.index[None, :])
             self._log_box(path, lo, hi, float(leaf.prob[0]))
             if self.uncertainty:  # a pruned leaf is confident: no variance layer
@@ -134,8 +137,7 @@ class RerunSink:
         centres = m.voxel_centres(leaf)
         prob = leaf.prob.astype(np.float64)
         if m.config.dim == 2:
-            pos = np.c_[centres, np.zeros(centres.shape[0])]
-            self.rec.log(path, rr.Points3D(pos, radii=0.5 * grid.resolution, colors=_grey(prob)))
+            self._log_tile(path, m, leaf, prob)
         else:
             occ = prob > 0.5
             half = np.full((int(occ.sum()), 3), 0.5 * grid.resolution)
@@ -159,6 +161,34 @@ class RerunSink:
                     colors=_heat(leaf.var.astype(np.float64) / sf2),
                 ),
             )
+
+    def _log_tile(self, path: str, m: OnlineMap, leaf: Leaf, prob: np.ndarray) -> None:
+        """A 2D leaf as one textured quad at z = 0: a side × side grey image.
+
+        The quad, its triangles, texture coordinates and texture format are
+        logged once, static; each refit logs only the texture bytes (3 per voxel).
+        """
+        side = m.grid.side
+        if path not in self._tiles:
+            lo, hi = m.grid.box(leaf.index[None, :])
+            (x0, y0), (x1, y1) = lo[0], hi[0]
+            quad = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
+            self.rec.log(
+                path,
+                rr.Mesh3D.from_fields(
+                    vertex_positions=quad,
+                    triangle_indices=np.array([[0, 1, 2], [0, 2, 3]], dtype=np.uint32),
+                    vertex_texcoords=np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]),
+                    albedo_texture_format=rrc.ImageFormat(
+                        side, side, color_model="RGB", channel_datatype="U8"
+                    ),
+                ),
+                static=True,
+            )
+            self._tiles.add(path)
+        # flat voxel order is x fastest, so rows of the image are y, columns x
+        texture = _grey(np.broadcast_to(prob, (side * side,)))
+        self.rec.log(path, rr.Mesh3D.from_fields(albedo_texture_buffer=texture.tobytes()))
 
     def _log_box(self, path: str, lo: FloatArray, hi: FloatArray, prob: float) -> None:
         if prob < 0.5 and lo.shape[1] == 3:
