@@ -235,7 +235,8 @@ class OnlineMap:
             raise OctolgpError(f"config must be a MapConfig, got {type(config).__name__}")
         self.config = config
         self.grid = LeafGrid.from_config(config)
-        self.store = LeafStore()
+        budget = config.memory_budget_mb
+        self.store = LeafStore(None if budget is None else int(budget * 1e6))
         self.hyperparameters: Hyperparameters | None = config.hyperparameters
         self.n_scans = 0
         self._buffer: list[Scan] = []
@@ -254,10 +255,12 @@ class OnlineMap:
         self._raw_config = dataclasses.replace(
             config, training=dataclasses.replace(config.training, dedup=False)
         )
-        if path is not None:
+        if path is not None or budget is not None:
             from octolgp.mapfile import MapFile
 
-            self._file = MapFile.create(path, self)
+            # without a path, a memory budget spills evicted leaves to a temporary file
+            self._file = MapFile.create(path, self) if path is not None else MapFile.spill(self)
+            self.store.attach(self._file, [])
 
     # ------------------------------------------------------------------ life cycle
     @classmethod
@@ -341,11 +344,13 @@ class OnlineMap:
         """
         t0 = time.perf_counter()
         scan = self._check_scan(scan)
-        self.sink.on_scan(self, scan, self.n_scans + 1)
+        index = self.n_scans + 1
+        self.sink.on_scan(self, scan, index)
         if self.hyperparameters is None:
             self._buffer.append(scan)
             if len(self._buffer) < self.config.online.learn_scans:
-                self.n_scans += 1
+                self.n_scans = index
+                self._commit([], [(index, scan)])
                 return ScanUpdate(
                     scan=self.n_scans,
                     touched_leaves=0,
@@ -357,9 +362,8 @@ class OnlineMap:
                     n_leaves=len(self.store),
                     memory_bytes=self.memory_bytes(),
                 )
-            return self._learn_and_flush(t0, count_scan=True)
-        self.n_scans += 1
-        return self._integrate([scan], t0)
+            return self._learn_and_flush(t0, journal=[(index, scan)])
+        return self._integrate([scan], t0, index, journal=[(index, scan)])
 
     def insert_scans(self, scans: Iterable[Scan]) -> list[ScanUpdate]:
         """Insert scans one by one; return their updates."""
@@ -373,20 +377,17 @@ class OnlineMap:
         """
         if not self._buffer:
             return None
-        return self._learn_and_flush(time.perf_counter(), count_scan=False)
+        return self._learn_and_flush(time.perf_counter(), journal=[])
 
-    def _learn_and_flush(self, t0: float, count_scan: bool) -> ScanUpdate:
+    def _learn_and_flush(self, t0: float, journal: list[tuple[int, Scan]]) -> ScanUpdate:
         t1 = time.perf_counter()
         hp = learn_hyperparameters(self._buffer, self.config)
         learning = time.perf_counter() - t1
         self.hyperparameters = hp
         buffered, self._buffer = self._buffer, []
-        if count_scan:
-            self.n_scans += 1
-        update = self._integrate(buffered, t0)
+        index = journal[-1][0] if journal else self.n_scans
+        update = self._integrate(buffered, t0, index, journal)
         update.stages["learning"] = learning
-        if self._file is not None:
-            self._file.write_meta(self)
         return update
 
     def relearn(self, scans: Iterable[Scan]) -> Hyperparameters:
@@ -396,22 +397,34 @@ class OnlineMap:
         return hp
 
     def set_hyperparameters(self, hp: Hyperparameters) -> None:
-        """Use ``hp`` from now on and refit every leaf from its stored evidence."""
+        """Use ``hp`` from now on and refit every leaf from its stored evidence.
+
+        Leaves are refitted in batches of 256 so a map with a memory budget never
+        holds more than that many beyond its budget.
+        """
         if not isinstance(hp, Hyperparameters):
             raise OctolgpError(f"hp must be Hyperparameters, got {type(hp).__name__}")
         self.flush()
         self.hyperparameters = hp
-        leaves = [leaf for _, leaf in self.store.items()]
         keys = list(self.store)
-        fitted, _ = self._fit(leaves)
-        for key, leaf in zip(keys, fitted, strict=True):
-            self.store.put(key, leaf)
-        if self._file is not None:
-            self._file.write_meta(self)
-            self._file.write_leaves(self, keys, n_scans=self.n_scans, scans=[])
+        for lo in range(0, len(keys), 256):  # one batch of leaves per iteration
+            batch = keys[lo : lo + 256]
+            leaves = [self.store.peek(k) for k in batch]
+            fitted, _ = self._fit([leaf for leaf in leaves if leaf is not None])
+            for key, leaf in zip(batch, fitted, strict=True):
+                self.store.put(key, leaf)
+            self._commit(batch, [])
 
-    def _integrate(self, scans: list[Scan], t0: float) -> ScanUpdate:
-        """Scans → evidence per leaf → refit the leaves that gained any → store."""
+    def _commit(self, keys: list[int], journal: list[tuple[int, Scan]]) -> None:
+        """Make the step durable (map file, if any) and trim RAM to the budget."""
+        if self._file is not None:
+            self.store.persisted(self._file.commit(self, keys, journal))
+        self.store.trim()
+
+    def _integrate(
+        self, scans: list[Scan], t0: float, index: int, journal: list[tuple[int, Scan]]
+    ) -> ScanUpdate:
+        """Scans → evidence per leaf → refit the leaves that gained any → store → file."""
         stages: dict[str, float] = {}
         with _blas_controller().limit(limits=1):
             t = time.perf_counter()
@@ -428,18 +441,18 @@ class OnlineMap:
             stages["fit"] = time.perf_counter() - t
 
         t = time.perf_counter()
+        self.n_scans = index
         for key in touched:
             leaf = self.store.get(key)
             if leaf is not None:
-                leaf.touched = self.n_scans
+                leaf.touched = index
         for key, leaf in zip(keys, fitted, strict=True):
-            leaf.touched = self.n_scans
+            leaf.touched = index
             self.store.put(key, leaf)
-        if self._file is not None:
-            self._file.write_leaves(self, keys, n_scans=self.n_scans, scans=scans)
+        self._commit(keys, journal)
         stages["store"] = time.perf_counter() - t
         update = ScanUpdate(
-            scan=self.n_scans,
+            scan=index,
             touched_leaves=len(touched),
             refit_leaves=len(keys),
             new_items=new_items,

@@ -13,8 +13,10 @@ around it is a pure function.
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections import OrderedDict
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -135,38 +137,123 @@ class Leaf:
         return int(new_h.size + new_f.size)
 
 
-class LeafStore:
-    """Leaves by packed leaf key; the map's only mutable state besides counters."""
+class LeafBacking(Protocol):
+    """Where evicted leaves live: the map file (:class:`octolgp.mapfile.MapFile`)."""
 
-    def __init__(self) -> None:
-        self._leaves: dict[int, Leaf] = {}
+    def read_leaf(self, key: int) -> Leaf:
+        """The persisted leaf ``key``."""
+        ...
+
+
+class LeafStore:
+    """Leaves by packed leaf key; the map's only mutable state besides counters.
+
+    Without a budget every leaf stays in RAM. With ``budget_bytes`` and a
+    ``backing`` (the map file, which holds every leaf after each scan),
+    :meth:`trim` drops the least recently used leaves from RAM until the RAM
+    held is within the budget; :meth:`get` loads an evicted leaf back
+    transparently. Eviction never loses data: a leaf is only dropped once it is
+    in the file (``persisted``).
+    """
+
+    def __init__(self, budget_bytes: int | None = None) -> None:
+        self._leaves: OrderedDict[int, Leaf] = OrderedDict()  # in RAM, LRU first
+        self._keys: set[int] = set()  # every key, in RAM or in the file
+        self._dirty: set[int] = set()  # in RAM and not yet in the file
         self._nbytes = 0
+        self.budget_bytes = budget_bytes
+        self.backing: LeafBacking | None = None
+        self.loads = 0
+        self.evictions = 0
+
+    def attach(self, backing: LeafBacking, keys: Iterable[int]) -> None:
+        """Use ``backing`` for the persisted leaves ``keys`` (not loaded now)."""
+        self.backing = backing
+        self._keys.update(int(k) for k in keys)
 
     def __len__(self) -> int:
-        return len(self._leaves)
+        return len(self._keys)
 
     def __contains__(self, key: object) -> bool:
-        return key in self._leaves
+        return key in self._keys
 
     def __iter__(self) -> Iterator[int]:
-        return iter(sorted(self._leaves))
+        return iter(sorted(self._keys))
 
     def get(self, key: int) -> Leaf | None:
-        """The leaf with this packed key, or ``None``."""
-        return self._leaves.get(int(key))
+        """The leaf with this packed key (loaded from the file if evicted), or ``None``."""
+        key = int(key)
+        leaf = self._leaves.get(key)
+        if leaf is not None:
+            self._leaves.move_to_end(key)
+            return leaf
+        if key not in self._keys or self.backing is None:
+            return None
+        leaf = self.backing.read_leaf(key)
+        self._leaves[key] = leaf
+        self._nbytes += leaf.nbytes
+        self.loads += 1
+        return leaf
+
+    def peek(self, key: int) -> Leaf | None:
+        """The leaf without making it resident (a read for iteration)."""
+        key = int(key)
+        leaf = self._leaves.get(key)
+        if leaf is not None or key not in self._keys or self.backing is None:
+            return leaf
+        return self.backing.read_leaf(key)
 
     def put(self, key: int, leaf: Leaf) -> None:
-        """Insert or replace a leaf."""
-        old = self._leaves.get(int(key))
+        """Insert or replace a leaf (dirty until :meth:`persisted`)."""
+        key = int(key)
+        old = self._leaves.get(key)
         self._nbytes += leaf.nbytes - (old.nbytes if old is not None else 0)
-        self._leaves[int(key)] = leaf
+        self._leaves[key] = leaf
+        self._leaves.move_to_end(key)
+        self._keys.add(key)
+        self._dirty.add(key)
+
+    def persisted(self, keys: Iterable[int]) -> None:
+        """Mark leaves as written to the backing file."""
+        self._dirty.difference_update(int(k) for k in keys)
+
+    @property
+    def dirty(self) -> list[int]:
+        """Keys of leaves changed in RAM and not yet in the file."""
+        return sorted(self._dirty)
+
+    def trim(self) -> int:
+        """Evict least recently used, persisted leaves until RAM is within budget.
+
+        Returns the number of leaves evicted.
+        """
+        if self.budget_bytes is None or self.backing is None:
+            return 0
+        evicted = 0
+        for key in list(self._leaves):  # LRU first; stops once within budget
+            if self._nbytes <= self.budget_bytes:
+                break
+            if key in self._dirty:
+                continue
+            leaf = self._leaves.pop(key)
+            self._nbytes -= leaf.nbytes
+            evicted += 1
+        self.evictions += evicted
+        return evicted
 
     def items(self) -> Iterator[tuple[int, Leaf]]:
-        """``(key, leaf)`` in ascending key order."""
-        for key in sorted(self._leaves):
-            yield key, self._leaves[key]
+        """``(key, leaf)`` in ascending key order; evicted leaves are read, not kept."""
+        for key in sorted(self._keys):
+            leaf = self.peek(key)
+            if leaf is not None:
+                yield key, leaf
+
+    @property
+    def resident(self) -> int:
+        """Leaves held in RAM."""
+        return len(self._leaves)
 
     @property
     def nbytes(self) -> int:
-        """Bytes held by all leaves' arrays (kept as a running total)."""
+        """Bytes held in RAM by the resident leaves' arrays (a running total)."""
         return self._nbytes

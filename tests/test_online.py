@@ -151,7 +151,7 @@ def test_one_by_one_equals_all_at_once() -> None:
     for s in scans:
         a.insert_scan(s)
     b = OnlineMap(config2d())
-    b._integrate(scans, 0.0)
+    b._integrate(scans, 0.0, len(scans), [])
     assert snapshot(a) == snapshot(b)
 
 
@@ -391,11 +391,16 @@ def test_map_file_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
         assert snapshot(back) == want
         assert np.array_equal(back.occupancy(probe), prob)
         back.insert_scan(room_scan((0.0, 1.0)))  # keeps writing through
+    saved = tmp_path / "copy.octolgp"
     with OnlineMap.open(path) as again:
         assert again.n_scans == 3
-    saved = tmp_path / "copy.octolgp"
-    again.save(saved)
-    assert snapshot(OnlineMap.open(saved)) == snapshot(again)
+        again.save(saved)
+        with OnlineMap.open(saved) as copy:
+            assert snapshot(copy) == snapshot(again)
+            assert copy.n_scans == 3
+            assert [s.points.tolist() for s in copy._file.scans()] == [
+                s.points.tolist() for s in again._file.scans()
+            ]
 
 
 def test_map_file_refuses_to_overwrite_and_rejects_foreign_files(tmp_path) -> None:  # type: ignore[no-untyped-def]
