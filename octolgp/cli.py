@@ -1,4 +1,4 @@
-"""Command line: ``octolgp simulate | run | replay | query | bench``.
+"""Command line: ``octolgp simulate | run | replay | query | export | bench``.
 
 The CLI is the only place that exits. A user error prints one line on stderr and
 exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
@@ -21,6 +21,7 @@ EXAMPLES = """examples:
   octolgp run data/intel_lab/intel-corrected.log.gz --out intel.octolgp --rerun-save intel.rrd
   octolgp replay intel.rrd --out intel2.octolgp
   octolgp query intel.octolgp --points pts.npy --out prob.npy
+  octolgp export intel.octolgp --out intel.bt
   octolgp bench paper2d --out bench_out
 """
 
@@ -95,14 +96,19 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
     from octolgp.online import OnlineMap
 
     out = Path(args.out)
-    if out.exists() and not args.overwrite:
-        raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
+    resume = getattr(args, "resume", False) and out.exists()
+    if out.exists() and not (args.overwrite or resume):
+        raise OctolgpError(
+            f"--out {str(out)!r} already exists (pass --resume to continue it, "
+            "--overwrite to replace it)"
+        )
     if args.limit is not None:
         scans = itertools.islice(scans, args.limit)
     config = MapConfig(
         dim=first.dim,
         resolution=args.resolution,
         online=OnlineConfig(n_jobs=args.jobs, learn_scans=args.learn_scans),
+        memory_budget_mb=args.memory_budget,
     )
     rec = _recording(args)
     sink = None
@@ -110,11 +116,25 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
         from octolgp.viz.stream import RerunSink
 
         sink = RerunSink(rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty)
-    if out.exists():
-        out.unlink()
-    out.parent.mkdir(parents=True, exist_ok=True)
+    if resume:
+        m = OnlineMap.open(out)
+        if m.config.dim != config.dim or m.config.resolution != config.resolution:
+            m.close()
+            raise OctolgpError(
+                f"--resume: {str(out)!r} is a {m.config.dim}D map at {m.config.resolution:g} m, "
+                f"the scans are {config.dim}D and --resolution is {config.resolution:g} m"
+            )
+        m.sink = m.sink if sink is None else sink
+        done = m.n_scans
+        scans = itertools.islice(scans, done, None)  # skip what the map already holds
+        print(f"resuming {out} after {done} scans")
+    else:
+        for suffix in ("", "-wal", "-shm"):
+            Path(str(out) + suffix).unlink(missing_ok=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        m = OnlineMap(config, path=out, sink=sink)
     try:
-        with OnlineMap(config, path=out, sink=sink) as m:
+        with m:
             bar = tqdm(scans, unit="scan", disable=args.quiet or None, dynamic_ncols=True)
             for scan in bar:  # one iteration per scan
                 update = m.insert_scan(scan)
@@ -175,6 +195,37 @@ def _cmd_query(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from octolgp.export import write_ply, write_png
+    from octolgp.online import OnlineMap
+
+    out = Path(args.out)
+    kinds = (".bt", ".ot", ".ply", ".png")
+    if out.suffix not in kinds:
+        raise OctolgpError(f"--out must end in one of {', '.join(kinds)}, got {str(out)!r}")
+    with OnlineMap.open(args.map) as m:
+        if out.suffix in (".bt", ".ot"):
+            nodes = m.export_octomap(out, threshold=args.threshold)
+            print(f"wrote {out}: {nodes} OctoMap nodes")
+            return 0
+        centres, prob = m.voxels()
+        res = m.config.resolution
+    if out.suffix == ".ply":
+        keep = prob > args.threshold
+        write_ply(out, centres[keep], prob[keep])
+        print(f"wrote {out}: {int(keep.sum())} occupied voxel centres with P(occupied)")
+        return 0
+    if centres.shape[1] == 3:  # a height slice of a 3D map
+        z = args.z if args.z is not None else float(np.median(centres[:, 2]))
+        layer = np.floor(centres[:, 2] / res) == np.floor(z / res)
+        centres, prob = centres[layer, :2], prob[layer]
+    write_png(out, centres, prob, res)
+    print(f"wrote {out}: {prob.size} voxels")
+    return 0
+
+
 def _positive_int(text: str) -> int:
     value = int(text)
     if value < 1:
@@ -199,6 +250,16 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--limit", type=_positive_int, default=None, help="stop after N scans")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    p.add_argument(
+        "--resume", action="store_true", help="continue an existing --out after its last scan"
+    )
+    p.add_argument(
+        "--memory-budget",
+        type=_positive_float,
+        default=None,
+        metavar="MB",
+        help="RAM for leaves; the rest stays in the map file",
+    )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     rr = p.add_mutually_exclusive_group()
     rr.add_argument("--rerun-save", metavar="REC.rrd", help="stream the mapping to a recording")
@@ -256,6 +317,13 @@ def make_parser() -> argparse.ArgumentParser:
     query.add_argument("--points", required=True, help=".npy array of shape (q, d)")
     query.add_argument("--out", required=True, help=".npy file for the probabilities")
     query.set_defaults(func=_cmd_query)
+
+    export = sub.add_parser("export", help="export a map file to OctoMap, PLY or PNG")
+    export.add_argument("map", help="map file written by run or replay")
+    export.add_argument("--out", required=True, help="FILE.bt | FILE.ot | FILE.ply | FILE.png")
+    export.add_argument("--threshold", type=float, default=0.5, help="occupied above this P")
+    export.add_argument("--z", type=float, default=None, help="height of a 3D map's PNG slice")
+    export.set_defaults(func=_cmd_export)
 
     bench = sub.add_parser("bench", help="reproduce the paper's Table II, Fig. 2-4")
     bench.add_argument("scene", choices=["paper2d"])

@@ -1,12 +1,9 @@
 """A long simulated 3D lidar mission, streamed lazily, for memory and long-run benchmarks.
 
-:func:`simulate_mission3d` lays a street scene along ONE large closed loop whose
-length is the mission length, so the explored area, and hence the map, keeps
-growing for the whole mission. Obstacles are axis-aligned boxes on a flat ground
-plane ``z = 0``; each scan is ray-cast analytically (slab method, reusing
-:func:`octolgp.simulate.ray_box_distance`) against the ground and only the boxes
-within ``max_range`` of the sensor, found through a coarse 2D grid of box
-footprints, so the cost of a scan does not grow with the size of the world.
+Each scan is ray-cast analytically against the ground plane and, through a coarse
+2D grid of box footprints, only the boxes within ``max_range`` of the sensor
+(slab method, :func:`octolgp.simulate.ray_box_distance`), so the cost of a scan
+does not grow with the size of the world.
 """
 
 from __future__ import annotations
@@ -147,9 +144,6 @@ class Mission3D:
         """Pack grid cell indices into one int64 key."""
         return np.asarray((ix + (1 << 30)) * (1 << 31) + (iy + (1 << 30)), dtype=np.int64)
 
-    def __len__(self) -> int:
-        return self.n_scans
-
     def route(self, s: ArrayLike) -> FloatArray:
         """Sensor pose at arc length ``s`` (metres, taken modulo the lap length).
 
@@ -183,17 +177,9 @@ class Mission3D:
         return np.asarray(ids[(gap**2).sum(axis=1) <= r * r], dtype=np.intp)
 
     def scan(self, index: int) -> Scan:
-        """Scan number ``index`` (0-based), ray-cast from the pose at ``index * spacing``.
-
-        Raises
-        ------
-        OctolgpError
-            If ``index`` is not in ``[0, n_scans)``.
-        """
+        """Scan ``index`` in ``[0, n_scans)``, cast from ``route(index * spacing)``; else raise."""
         if not (isinstance(index, int | np.integer) and 0 <= index < self.n_scans):
-            raise OctolgpError(
-                f"Mission3D.scan: index must be in [0, {self.n_scans}), got {index!r}"
-            )
+            raise OctolgpError(f"Mission3D.scan: index must be in [0, {self.n_scans}), got {index}")
         x, y, z, yaw = self.route(index * self.spacing)
         c, s = np.cos(yaw), np.sin(yaw)
         u = self._directions
@@ -221,16 +207,9 @@ class Mission3D:
             yield self.scan(k)
 
     def truth(self, points: ArrayLike) -> NDArray[np.int8]:
-        """Ground-truth labels: 1 strictly inside a box or below the ground (z < 0), else 0.
+        """Labels ``(q,)`` int8 of ``points`` ``(q, 3)`` (world frame, metres).
 
-        Parameters
-        ----------
-        points : array_like of shape (q, 3)
-            Query points, world frame, metres.
-
-        Returns
-        -------
-        ndarray of shape (q,), int8
+        1 strictly inside a box or below the ground (``z < 0``), else 0.
 
         Raises
         ------

@@ -643,6 +643,35 @@ class OnlineMap:
         keep = prob > threshold
         return centres[keep], prob[keep]
 
+    def export_octomap(self, path: str | Path, threshold: float = 0.5) -> int:
+        """Write the map as an OctoMap file that the OctoMap library reads.
+
+        ``.bt`` (default) is OctoMap's maximum-likelihood binary format: every
+        predicted voxel is occupied when P(occupied) > ``threshold``, else free;
+        voxels no leaf predicts stay unknown. ``.ot`` is the full format with each
+        voxel's log-odds ``log(P / (1 − P))``. A 2D map is one layer of voxels whose
+        z key is 32768 (z in ``[0, resolution)``). Identical sibling voxels are
+        pruned as OctoMap does.
+
+        Returns
+        -------
+        int
+            Nodes written (OctoMap's ``size()``).
+        """
+        from octolgp.export import write_bt, write_ot
+        from octolgp.keys import coord_to_key
+
+        ok = isinstance(threshold, int | float) and not isinstance(threshold, bool)
+        if not ok or not 0.0 < threshold < 1.0:
+            raise OctolgpError(f"threshold must be a number in (0, 1), got {threshold!r}")
+        centres, prob = self.voxels()
+        keys = coord_to_key(centres, self.config.resolution, self.config.tree_depth)
+        p = Path(path)
+        if p.suffix == ".ot":
+            q = np.clip(prob, 1e-6, 1.0 - 1e-6)
+            return write_ot(p, keys, np.log(q / (1.0 - q)), self.config.resolution)
+        return write_bt(p, keys, prob > threshold, self.config.resolution)
+
     def memory_bytes(self) -> int:
         """Bytes held by the leaves (evidence and voxel values)."""
         return self.store.nbytes

@@ -1,0 +1,217 @@
+"""Maps that survive: the SQLite map file, eviction under a memory budget, crashes, export."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import signal
+import sqlite3
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
+from octolgp.cli import main
+from octolgp.export import decode_bt, read_bt_header
+from octolgp.mapfile import decode_leaf, encode_leaf
+
+INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
+HP = Hyperparameters(
+    length_scale=1.2, signal_variance=3.8, noise_variance=0.006, alpha=4.5, beta=1.0
+)
+CONFIG = MapConfig(dim=2, resolution=0.1, hyperparameters=HP)
+
+
+def _scans() -> list:  # type: ignore[type-arg]
+    return list(load_scans(INTEL20))
+
+
+def _values(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
+    fields = ("hits", "free_start", "free_end", "mean", "var", "prob")
+    return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
+
+
+@pytest.fixture(scope="module")
+def reference() -> list[dict[int, tuple[bytes, ...]]]:
+    """The in-memory map's leaves after each of the 20 scans."""
+    m = OnlineMap(CONFIG)
+    out = []
+    for s in _scans():
+        m.insert_scan(s)
+        out.append(_values(m))
+    return out
+
+
+def test_leaf_encoding_round_trips_and_rejects_corruption() -> None:
+    m = OnlineMap(CONFIG)
+    m.insert_scans(_scans()[:2])
+    for _, leaf in m.leaves():
+        blob = encode_leaf(leaf)
+        back = decode_leaf(blob)
+        assert encode_leaf(back) == blob
+        assert back.pruned == leaf.pruned
+        with pytest.raises(OctolgpError, match=r"bytes|header|truncated"):
+            decode_leaf(blob[:-3])
+        with pytest.raises(OctolgpError, match="header"):
+            decode_leaf(b"XXXX" + blob[4:])
+
+
+def test_budget_evicts_to_the_file_and_gives_the_same_map(
+    tmp_path: Path, reference: list[dict[int, tuple[bytes, ...]]]
+) -> None:
+    budget = dataclasses.replace(CONFIG, memory_budget_mb=0.2)
+    with OnlineMap(budget, path=tmp_path / "b.octolgp") as m:
+        for s in _scans() + _scans()[:5]:  # a revisit loads evicted leaves back
+            m.insert_scan(s)
+            assert m.memory_bytes() <= 0.2e6
+        assert m.store.evictions > 0
+        assert m.store.loads > 0
+        assert m.store.resident < len(m.store)
+        assert _values(m) == reference[-1]
+
+
+def test_budget_without_a_path_spills_to_a_temporary_file(
+    reference: list[dict[int, tuple[bytes, ...]]],
+) -> None:
+    m = OnlineMap(dataclasses.replace(CONFIG, memory_budget_mb=0.2))
+    spill = m._file.path
+    assert spill.exists()
+    m.insert_scans(_scans())
+    assert m.memory_bytes() <= 0.2e6
+    assert _values(m) == reference[-1]
+    m.close()
+    assert not spill.exists()
+
+
+CHILD = """
+import sys
+from octolgp import Hyperparameters, MapConfig, OnlineMap, load_scans
+hp = Hyperparameters(length_scale=1.2, signal_variance=3.8, noise_variance=0.006, alpha=4.5, beta=1.0)
+config = MapConfig(dim=2, resolution=0.1, hyperparameters=hp, memory_budget_mb=float(sys.argv[3]))
+m = OnlineMap.open(sys.argv[1]) if sys.argv[4] == "resume" else OnlineMap(config, path=sys.argv[1])
+scans = list(load_scans(sys.argv[2]))
+for s in scans[m.n_scans:]:
+    m.insert_scan(s)
+    print(m.n_scans, flush=True)
+m.close()
+"""
+
+
+def _child(path: Path, mode: str = "new", budget: float = 0.3) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(path), str(INTEL20), str(budget), mode],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+
+
+@pytest.mark.parametrize("kill_after", [0, 3, 9, 16])
+def test_sigkill_mid_mission_loses_nothing_durable(
+    tmp_path: Path, kill_after: int, reference: list[dict[int, tuple[bytes, ...]]]
+) -> None:
+    path = tmp_path / "mission.octolgp"
+    child = _child(path)
+    assert child.stdout is not None
+    seen = 0
+    while seen < kill_after:  # wait until kill_after inserts have returned
+        line = child.stdout.readline()
+        assert line, "child ended early"
+        seen = int(line)
+    os.kill(child.pid, signal.SIGKILL)
+    child.wait()
+    child.stdout.close()
+    if kill_after == 0 and not path.exists():
+        return  # killed before the file existed: nothing to check
+    with OnlineMap.open(path) as m:
+        assert m.n_scans >= kill_after  # every returned insert is durable
+        assert len(list(m._file.scans())) == m.n_scans
+        if m.n_scans:
+            assert _values(m) == reference[m.n_scans - 1]
+    resumed = _child(path, "resume")
+    resumed.communicate(timeout=300)
+    assert resumed.returncode == 0
+    with OnlineMap.open(path) as m:
+        assert m.n_scans == 20
+        assert _values(m) == reference[-1]
+
+
+def test_open_refuses_foreign_and_corrupt_files_without_writing(tmp_path: Path) -> None:
+    foreign = tmp_path / "foreign.sqlite"
+    con = sqlite3.connect(foreign)
+    con.execute("CREATE TABLE meta(key TEXT, value TEXT)")
+    con.execute("INSERT INTO meta VALUES ('format', 'something-else')")
+    con.commit()
+    con.close()
+    before = foreign.read_bytes()
+    with pytest.raises(OctolgpError, match="not an octolgp map"):
+        OnlineMap.open(foreign)
+    assert foreign.read_bytes() == before
+
+    good = tmp_path / "good.octolgp"
+    with OnlineMap(CONFIG, path=good) as m:
+        m.insert_scans(_scans()[:3])
+    truncated = tmp_path / "cut.octolgp"
+    truncated.write_bytes(good.read_bytes()[:3000])
+
+    def open_and_read(path: Path) -> None:
+        with OnlineMap.open(path) as m2:
+            list(m2.leaves())
+
+    with pytest.raises(OctolgpError):
+        open_and_read(truncated)
+    for name, payload in [("empty.octolgp", b""), ("zeros.octolgp", bytes(8192))]:
+        (tmp_path / name).write_bytes(payload)
+        with pytest.raises(OctolgpError, match="not an octolgp map"):
+            OnlineMap.open(tmp_path / name)
+    # a corrupt leaf record is named when it is read
+    con = sqlite3.connect(good)
+    key = con.execute("SELECT key FROM leaves LIMIT 1").fetchone()[0]
+    con.execute("UPDATE leaves SET data=? WHERE key=?", (b"garbage", key))
+    con.commit()
+    con.close()
+    with OnlineMap.open(good) as m, pytest.raises(OctolgpError, match=f"leaf {key}"):
+        list(m.leaves())
+
+
+def test_export_bt_is_read_by_octomap(tmp_path: Path) -> None:
+    octomap = pytest.importorskip("pyoctomap", exc_type=ImportError)
+    m = OnlineMap(CONFIG)
+    m.insert_scans(_scans()[:6])
+    bt = tmp_path / "m.bt"
+    nodes = m.export_octomap(bt)
+    assert read_bt_header(bt)["size"] == nodes  # decoder-free check
+    tree = octomap.OcTree(0.1)
+    tree.readBinary(str(bt))
+    assert tree.size() == nodes
+    centres, prob = m.voxels()
+    rng = np.random.default_rng(0)
+    for i in rng.choice(centres.shape[0], 300, replace=False):
+        x, y = centres[i]
+        node = tree.search((float(x), float(y), 0.05))
+        assert node is not None
+        assert tree.isNodeOccupied(node) == bool(prob[i] > 0.5)
+    assert tree.search((500.0, 500.0, 0.05)) is None  # unknown stays unknown
+    keys, occupied, _ = decode_bt(bt, expand=True)
+    assert keys.shape[0] == centres.shape[0]
+    assert int(occupied.sum()) == int((prob > 0.5).sum())
+
+
+def test_cli_export_and_resume(tmp_path: Path) -> None:
+    out = tmp_path / "m.octolgp"
+    common = ["--quiet", "--learn-scans", "5"]
+    assert main(["run", str(INTEL20), "--out", str(out), "--limit", "8", *common]) == 0
+    assert main(["run", str(INTEL20), "--out", str(out), *common]) == 2  # exists
+    assert main(["run", str(INTEL20), "--out", str(out), "--resume", *common]) == 0
+    full = tmp_path / "full.octolgp"
+    assert main(["run", str(INTEL20), "--out", str(full), *common]) == 0
+    with OnlineMap.open(out) as a, OnlineMap.open(full) as b:
+        assert a.n_scans == b.n_scans == 20
+        assert _values(a) == _values(b)
+    for suffix in (".bt", ".ot", ".ply", ".png"):
+        target = tmp_path / f"m{suffix}"
+        assert main(["export", str(out), "--out", str(target)]) == 0
+        assert target.stat().st_size > 100
+    assert main(["export", str(out), "--out", str(tmp_path / "m.txt")]) == 2
