@@ -243,7 +243,7 @@ class MapFile:
             raise
         except (sqlite3.Error, KeyError, ValueError, TypeError, OSError) as exc:
             raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
-        m = OnlineMap(config)
+        m = OnlineMap(config, _opened=True)  # no spill file: this file is the backing
         m.hyperparameters = None if hp_data is None else Hyperparameters(**hp_data)
         m.n_scans = n_scans
         f = cls(p, con)

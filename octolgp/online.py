@@ -192,8 +192,8 @@ class OnlineMap:
     config : MapConfig, optional
         ``MapConfig()`` when omitted.
     path : str or Path, optional
-        With a path the map is persisted in that SQLite file after every
-        :meth:`insert_scan`; see :mod:`octolgp.mapfile`.
+        With a path the map is persisted in that SQLite file (which must not
+        exist yet) after every :meth:`insert_scan`; see :mod:`octolgp.mapfile`.
     recording : rerun.RecordingStream, optional
         Stream every scan and every refitted leaf to this Rerun recording
         (:class:`octolgp.viz.stream.RerunSink` with its defaults).
@@ -203,9 +203,11 @@ class OnlineMap:
 
     Notes
     -----
-    In this version every leaf stays in RAM: ``MapConfig.memory_budget_mb`` is
-    stored with the map but not yet enforced by eviction. Memory still saturates
-    on revisits because each leaf's evidence is bounded (see the module notes).
+    With ``MapConfig.memory_budget_mb`` the least recently used leaves are dropped
+    from RAM after each scan once they are in the map file (a temporary spill file
+    when ``path`` is ``None``) and loaded back when a scan or query touches them;
+    the map does not depend on the budget. With a file, every ``insert_scan`` is
+    durable when it returns (one SQLite transaction; see :mod:`octolgp.mapfile`).
 
     Examples
     --------
@@ -228,6 +230,7 @@ class OnlineMap:
         *,
         recording: Any = None,
         sink: Any = None,
+        _opened: bool = False,
     ) -> None:
         if config is None:
             config = MapConfig()
@@ -255,7 +258,7 @@ class OnlineMap:
         self._raw_config = dataclasses.replace(
             config, training=dataclasses.replace(config.training, dedup=False)
         )
-        if path is not None or budget is not None:
+        if not _opened and (path is not None or budget is not None):
             from octolgp.mapfile import MapFile
 
             # without a path, a memory budget spills evicted leaves to a temporary file

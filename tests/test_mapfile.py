@@ -215,3 +215,22 @@ def test_cli_export_and_resume(tmp_path: Path) -> None:
         assert main(["export", str(out), "--out", str(target)]) == 0
         assert target.stat().st_size > 100
     assert main(["export", str(out), "--out", str(tmp_path / "m.txt")]) == 2
+
+
+def test_reopened_budget_map_evicts_into_its_own_file(
+    tmp_path: Path, reference: list[dict[int, tuple[bytes, ...]]]
+) -> None:
+    import tempfile
+
+    path = tmp_path / "b.octolgp"
+    budget = dataclasses.replace(CONFIG, memory_budget_mb=0.2)
+    with OnlineMap(budget, path=path) as m:
+        m.insert_scans(_scans()[:10])
+    spills = set(Path(tempfile.gettempdir()).glob("octolgp-*.octolgp"))
+    with OnlineMap.open(path) as m:
+        assert m._file.path == path
+        assert m.store.resident == 0  # leaves are read lazily
+        m.insert_scans(_scans()[10:])
+        assert m.memory_bytes() <= 0.2e6
+        assert _values(m) == reference[-1]
+    assert set(Path(tempfile.gettempdir()).glob("octolgp-*.octolgp")) == spills
