@@ -13,7 +13,8 @@ Missions:
     0.1 m. Skipped with a note when ``../shared/data`` is absent.
 ``mission3d``
     :func:`octolgp.mission.simulate_mission3d`: a 2 km loop through a street of
-    buildings, poles and trees, a 60 × 4-beam lidar every 2 m (1,000 scans), 0.5 m.
+    buildings, poles and trees, a 60 × 4-beam lidar every 2 m (1,000 scans), 0.5 m;
+    ``OCTOLGP_MISSION_SPACING=8`` drives the same 2 km with a scan every 8 m.
 
     .venv/bin/python tools/bench_memory.py --missions fr079,mission3d --budgets 64,16
 """
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import sqlite3
 import subprocess
@@ -52,7 +54,8 @@ def _scans(mission: str) -> Iterator[object]:
         for _ in range(2):  # replayed twice, streamed each time
             yield from load_scans(FR079)
     else:
-        yield from simulate_mission3d(2000.0, spacing=2.0, n_azimuth=60, n_elevation=4).scans()
+        spacing = float(os.environ.get("OCTOLGP_MISSION_SPACING", "2.0"))
+        yield from simulate_mission3d(2000.0, spacing=spacing, n_azimuth=60, n_elevation=4).scans()
 
 
 def _config(mission: str, hp: dict[str, float], budget: float | None) -> object:
