@@ -63,6 +63,16 @@ def _cholesky(K: FloatArray) -> FloatArray:
     return np.tril(L)
 
 
+def _factor(
+    items: QuadratureSet, y: FloatArray, hp: Hyperparameters
+) -> tuple[FloatArray, FloatArray]:
+    """Cholesky factor of ``K + σn² I`` and the weights ``(K + σn² I)⁻¹ y`` (Alg. 2.1 l. 2-3)."""
+    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
+    K[np.diag_indices_from(K)] += hp.noise_variance
+    L = _cholesky(K)
+    return L, cho_solve((L, True), y, check_finite=False)
+
+
 def fit_local_gp(items: QuadratureSet, y: FloatArray, hp: Hyperparameters) -> LocalGP:
     """Fit GP regression on items with targets ``y``.
 
@@ -79,10 +89,7 @@ def fit_local_gp(items: QuadratureSet, y: FloatArray, hp: Hyperparameters) -> Lo
     -------
     LocalGP
     """
-    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
-    K[np.diag_indices_from(K)] += hp.noise_variance
-    L = _cholesky(K)
-    weights = cho_solve((L, True), y, check_finite=False)  # R&W Alg. 2.1 line 3
+    L, weights = _factor(items, y, hp)
     L_inv = solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
     return LocalGP(items=items, L=L, L_inv=L_inv, weights=weights, hp=hp)
 
@@ -132,15 +139,26 @@ def fit_predict(
     mean, var : ndarray of shape (m,)
         Latent posterior (variance excludes the noise).
     """
-    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
-    K[np.diag_indices_from(K)] += hp.noise_variance
-    L = _cholesky(K)
-    weights = cho_solve((L, True), y, check_finite=False)
+    L, weights = _factor(items, y, hp)
     Ks = item_covariance(points_set(X), items, hp.length_scale, hp.signal_variance)
     mean = Ks @ weights
     V = solve_triangular(L, Ks.T, lower=True, check_finite=False)  # (n, m)
     var = hp.signal_variance - np.einsum("ij,ij->j", V, V)
     return mean, np.maximum(var, 0.0)
+
+
+def _noisy_factor(Kf: FloatArray, sn2: float) -> FloatArray | None:
+    """Factor of ``Kf + σn² I`` (``Kf`` untouched), or ``None`` where it is not PD.
+
+    The optimisers treat a non-PD point as −inf rather than an error.
+    """
+    K = Kf.copy()
+    K[np.diag_indices_from(K)] += sn2
+    try:
+        L, _ = cho_factor(K, lower=True, check_finite=False)
+    except LinAlgError:
+        return None
+    return np.asarray(L)
 
 
 def log_marginal_likelihood(
@@ -166,12 +184,9 @@ def log_marginal_likelihood(
     """
     ell, sf2, sn2 = np.exp(log_theta)
     R = node_distances(items) if R is None else R
-    K, dK_dlogl = covariance_with_grad(items, R, float(ell), float(sf2))
-    Kf = K.copy()
-    K[np.diag_indices_from(K)] += sn2
-    try:
-        L, _ = cho_factor(K, lower=True, check_finite=False)
-    except LinAlgError:
+    Kf, dK_dlogl = covariance_with_grad(items, R, float(ell), float(sf2))
+    L = _noisy_factor(Kf, float(sn2))
+    if L is None:
         return -np.inf, np.zeros(3)
     alpha = cho_solve((L, True), y, check_finite=False)
     n = y.shape[0]
@@ -200,12 +215,9 @@ def loo_predictions(
     -------
     mean, var : ndarray of shape (n,)
     """
-    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
-    K[np.diag_indices_from(K)] += hp.noise_variance
-    L = _cholesky(K)
-    Kinv = cho_solve((L, True), np.eye(y.shape[0]), check_finite=False)
-    diag = np.diag(Kinv)
-    return y - (Kinv @ y) / diag, 1.0 / diag
+    L, weights = _factor(items, y, hp)
+    diag = np.diag(cho_solve((L, True), np.eye(y.shape[0]), check_finite=False))
+    return y - weights / diag, 1.0 / diag
 
 
 def loo_log_predictive(
@@ -237,11 +249,8 @@ def loo_log_predictive(
     alpha, beta = float(params[3]), float(params[4])
     R = node_distances(items) if R is None else R
     Kf, dK_dlogl = covariance_with_grad(items, R, float(ell), float(sf2))
-    K = Kf.copy()
-    K[np.diag_indices_from(K)] += sn2
-    try:
-        L, _ = cho_factor(K, lower=True, check_finite=False)
-    except LinAlgError:
+    L = _noisy_factor(Kf, float(sn2))
+    if L is None:
         return -np.inf, np.zeros(5)
     Kinv = cho_solve((L, True), np.eye(y.shape[0]), check_finite=False)
     a = Kinv @ y
