@@ -20,37 +20,43 @@ def quadrature_spacing(config: MapConfig, length_scale: float) -> float:
     return config.training.quadrature_spacing * length_scale
 
 
-def cluster_items(
-    data: TrainingData, cluster: Cluster, config: MapConfig, spacing: float
+def items_and_targets(
+    hits: FloatArray, seg_start: FloatArray, seg_end: FloatArray, config: MapConfig, spacing: float
 ) -> tuple[QuadratureSet, FloatArray]:
-    """A cluster's items as quadrature nodes, and their targets (+1 hits, −1 free).
+    """Hits and free segments as quadrature nodes, and their targets (+1 hits, −1 free).
 
     Parameters
     ----------
-    data : TrainingData
-    cluster : Cluster
+    hits : ndarray of shape (h, d)
+        Hit points, metres.
+    seg_start, seg_end : ndarray of shape (s, d)
+        Free segments, metres.
     config : MapConfig
+        Uses the quadrature node bounds of ``config.training``.
     spacing : float
         Node spacing along segments, metres.
 
     Returns
     -------
     items : QuadratureSet
-        Hits, then free pieces.
-    y : ndarray of shape (n,)
+        Hits, then free segments.
+    y : ndarray of shape (h + s,)
     """
     tc = config.training
-    seg_start, seg_end = cluster.seg_start, cluster.seg_end
     items = quadrature_set(
-        data.hits[cluster.hits],
-        seg_start,
-        seg_end,
-        spacing,
-        tc.min_quadrature_nodes,
-        tc.max_quadrature_nodes,
+        hits, seg_start, seg_end, spacing, tc.min_quadrature_nodes, tc.max_quadrature_nodes
     )
-    y = np.concatenate([np.ones(cluster.hits.size), -np.ones(seg_start.shape[0])])
+    y = np.concatenate([np.ones(hits.shape[0]), -np.ones(seg_start.shape[0])])
     return items, y
+
+
+def cluster_items(
+    data: TrainingData, cluster: Cluster, config: MapConfig, spacing: float
+) -> tuple[QuadratureSet, FloatArray]:
+    """A cluster's items and targets (:func:`items_and_targets` of its hits and pieces)."""
+    return items_and_targets(
+        data.hits[cluster.hits], cluster.seg_start, cluster.seg_end, config, spacing
+    )
 
 
 @dataclass

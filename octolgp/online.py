@@ -47,8 +47,7 @@ from threadpoolctl import ThreadpoolController
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.gpmap import quadrature_spacing
-from octolgp.kernels import quadrature_set
+from octolgp.gpmap import items_and_targets, quadrature_spacing
 from octolgp.keys import addressable_mask, addressable_range
 from octolgp.learning import learn_hyperparameters
 from octolgp.leaves import LeafGrid, assign_points, assign_segments
@@ -113,17 +112,6 @@ class ScanUpdate:
     memory_bytes: int = 0
 
 
-def _items_and_targets(
-    hits: FloatArray, seg_start: FloatArray, seg_end: FloatArray, config: MapConfig, spacing: float
-) -> tuple[Any, FloatArray]:
-    tc = config.training
-    items = quadrature_set(
-        hits, seg_start, seg_end, spacing, tc.min_quadrature_nodes, tc.max_quadrature_nodes
-    )
-    y = np.concatenate([np.ones(hits.shape[0]), -np.ones(seg_start.shape[0])])
-    return items, y
-
-
 def predict_leaf(
     leaf: Leaf, centres: FloatArray, config: MapConfig, hp: Hyperparameters
 ) -> tuple[FloatArray, FloatArray]:
@@ -151,7 +139,7 @@ def predict_leaf(
         if leaf.n_items > cap:  # free space only: an even, deterministic thinning
             keep = np.linspace(0, fs.shape[0] - 1, cap).round().astype(np.int64)
             fs, fe = fs[keep], fe[keep]
-        items, y = _items_and_targets(hits, fs, fe, config, spacing)
+        items, y = items_and_targets(hits, fs, fe, config, spacing)
         return fit_predict(items, y, hp, centres)
     # the paper's iterative k-means under the cluster cap, nearest-centre prediction
     data = TrainingData(hits, fs, fe, np.full(fs.shape[0], -1, dtype=np.int64))

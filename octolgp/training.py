@@ -73,6 +73,25 @@ def check_scans(scans: Iterable[Scan], dim: int) -> list[Scan]:
     return out
 
 
+def stack_beams(scan_list: list[Scan]) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Every beam of the scans, stacked.
+
+    Returns
+    -------
+    origins, ends : ndarray of shape (b, d)
+        Sensor position and endpoint of each beam, world frame, metres.
+    max_range : ndarray of shape (b,)
+        The beam's scan's no-return range (``inf`` where the scan has none).
+    """
+    counts = np.array([len(s) for s in scan_list])
+    origins = np.repeat(np.stack([s.origin for s in scan_list]), counts, axis=0)
+    ends = np.concatenate([s.points for s in scan_list])
+    max_range = np.repeat(
+        np.array([np.inf if s.max_range is None else s.max_range for s in scan_list]), counts
+    )
+    return origins, ends, max_range
+
+
 def _first_per_voxel(points: FloatArray, resolution: float) -> tuple[IntArray, IntArray]:
     """Indices of the first point in each voxel, and each point's kept index."""
     keys = np.floor(points / resolution).astype(np.int64)
@@ -103,12 +122,7 @@ def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData
         On an empty sequence or a dimension mismatch.
     """
     scan_list = check_scans(scans, config.dim)
-    counts = np.array([len(s) for s in scan_list])
-    origins = np.repeat(np.stack([s.origin for s in scan_list]), counts, axis=0)
-    ends = np.concatenate([s.points for s in scan_list])
-    max_range = np.repeat(
-        np.array([np.inf if s.max_range is None else s.max_range for s in scan_list]), counts
-    )
+    origins, ends, max_range = stack_beams(scan_list)
     vec = ends - origins
     length = np.linalg.norm(vec, axis=1)
     valid = length > 1e-9  # an endpoint on the sensor carries no direction

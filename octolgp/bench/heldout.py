@@ -25,6 +25,7 @@ from sklearn.metrics import roc_auc_score
 
 from octolgp.errors import OctolgpError
 from octolgp.scan import Scan, as_points
+from octolgp.training import stack_beams
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -194,12 +195,7 @@ def heldout_points(
     generator = np.random.default_rng(rng)
 
     # Beams of all scans, stacked: origin, endpoint and max_range per beam.
-    counts = np.array([len(s) for s in scan_list])
-    origin = np.repeat(np.stack([s.origin for s in scan_list]), counts, axis=0)
-    end = np.concatenate([s.points for s in scan_list])
-    max_range = np.repeat(
-        np.array([np.inf if s.max_range is None else s.max_range for s in scan_list]), counts
-    )
+    origin, end, max_range = stack_beams(scan_list)
     delta = end - origin
     length = np.linalg.norm(delta, axis=1)
 

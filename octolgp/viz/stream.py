@@ -191,18 +191,16 @@ class RerunSink:
         self.rec.log(path, rr.Mesh3D.from_fields(albedo_texture_buffer=texture.tobytes()))
 
     def _log_box(self, path: str, lo: FloatArray, hi: FloatArray, prob: float) -> None:
-        if prob < 0.5 and lo.shape[1] == 3:
-            self.rec.log(path, rr.Clear(recursive=False))  # a free 3D leaf shows nothing
+        """A pruned 3D leaf: one box if occupied, nothing (cleared) if free."""
+        if prob < 0.5:
+            self.rec.log(path, rr.Clear(recursive=False))
             return
-        lo3 = np.c_[lo, np.zeros((1, 1))] if lo.shape[1] == 2 else lo
-        hi3 = np.c_[hi, np.zeros((1, 1))] if hi.shape[1] == 2 else hi
-        colour = _grey(np.array([prob])) if lo.shape[1] == 2 else _heat(np.array([2 * prob - 1]))
         self.rec.log(
             path,
             rr.Boxes3D(
-                centers=0.5 * (lo3 + hi3),
-                half_sizes=0.5 * (hi3 - lo3),
-                colors=colour,
+                centers=0.5 * (lo + hi),
+                half_sizes=0.5 * (hi - lo),
+                colors=_heat(np.array([2 * prob - 1])),
                 fill_mode="solid",
             ),
         )
