@@ -1,4 +1,4 @@
-"""Command line: ``octolgp simulate | run | replay | query | export | bench``.
+"""Command line: ``octolgp simulate | run | replay | query | export | bench | eval``.
 
 The CLI is the only place that exits. A user error prints one line on stderr and
 exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
@@ -23,6 +23,7 @@ EXAMPLES = """examples:
   octolgp query intel.octolgp --points pts.npy --out prob.npy
   octolgp export intel.octolgp --out intel.bt
   octolgp bench paper2d --out bench_out
+  octolgp eval data/intel_lab/intel-corrected.log.gz --seeds 5 --out eval_intel
 """
 
 
@@ -52,6 +53,51 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     print(table)
     (out / "table2.txt").write_text(table + "\n")
     print(f"\nwrote {out}/table2.txt, fig3_maps.png, fig4_roc.png, fig2_1d.png")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    import itertools
+    import json
+
+    from octolgp.bench.evaluation import evaluate_log, plot_roc
+    from octolgp.config import MapConfig
+
+    if not (0.0 < args.fraction < 1.0):
+        raise OctolgpError(f"--fraction must be in (0, 1), got {args.fraction}")
+    if not (args.short >= 0.0 and args.short < float("inf")):
+        raise OctolgpError(f"--short must be a finite number >= 0, got {args.short}")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    first, scans = _first_and_rest(args.scans, args.format)
+    scan_list = list(itertools.islice(scans, args.limit))
+    config = MapConfig(dim=first.dim, resolution=args.resolution)
+
+    def progress(message: str) -> None:
+        if not args.quiet:
+            print(message, file=sys.stderr, flush=True)
+
+    report = evaluate_log(
+        scan_list,
+        config,
+        seeds=args.seeds,
+        fraction=args.fraction,
+        run=args.run,
+        short=args.short,
+        leave_one_out=args.leave_one_out,
+        methods=methods,
+        n_jobs=args.jobs,
+        downsample=args.downsample,
+        progress=progress,
+    )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = Path(args.scans).name
+    plot_roc(report, out / "roc.png", title=f"{name}: held-out scans")
+    (out / "results.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+    table = f"{name}, {len(scan_list)} scans, resolution {args.resolution} m: " + report.table()
+    (out / "table.md").write_text(table + "\n")
+    print(table)
+    print(f"\nwrote {out}/roc.png, {out}/results.json, {out}/table.md")
     return 0
 
 
@@ -189,7 +235,7 @@ def _cmd_query(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as exc:
         raise OctolgpError(f"--points {str(pts_path)!r} is not a .npy array: {exc}") from None
     with OnlineMap.open(args.map) as m:
-        prob = m.occupancy(pts)
+        prob = m.occupancy(pts, interpolate=not args.nearest)
     np.save(args.out, prob)
     print(f"wrote {args.out}: P(occupied) at {prob.size} points")
     return 0
@@ -316,6 +362,11 @@ def make_parser() -> argparse.ArgumentParser:
     query.add_argument("map", help="map file written by run")
     query.add_argument("--points", required=True, help=".npy array of shape (q, d)")
     query.add_argument("--out", required=True, help=".npy file for the probabilities")
+    query.add_argument(
+        "--nearest",
+        action="store_true",
+        help="the value of the voxel holding each point (default: interpolated, continuous)",
+    )
     query.set_defaults(func=_cmd_query)
 
     export = sub.add_parser("export", help="export a map file to OctoMap, PLY or PNG")
@@ -332,6 +383,35 @@ def make_parser() -> argparse.ArgumentParser:
     bench.add_argument("--repeats", type=int, default=5, help="timing runs per method")
     bench.add_argument("--seeds", type=int, default=5, help="simulated data sets for the AUC")
     bench.set_defaults(func=_cmd_bench)
+
+    ev = sub.add_parser(
+        "eval",
+        help="held-out-scan AUC of octolgp online and batch, the grid and OctoMap",
+        description=(
+            "Hold out 10%% of the scans in contiguous runs, label held-out endpoints "
+            "occupied and points along the beams free, map the rest with every method "
+            "and report ROC AUC and the unknown fraction (mean ± std over seeds)."
+        ),
+    )
+    ev.add_argument("scans", help="scan log: npz, CARMEN, 3DTK folder, .rrd, ...")
+    ev.add_argument("--format", default=None, help="scan log format (default: guessed)")
+    ev.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    ev.add_argument("--seeds", type=_positive_int, default=5, help="random splits")
+    ev.add_argument("--fraction", type=_positive_float, default=0.1, help="held-out share")
+    ev.add_argument("--run", type=_positive_int, default=40, help="longest held-out run")
+    ev.add_argument("--short", type=float, default=0.1, help="metres kept free before each hit")
+    ev.add_argument("--leave-one-out", action="store_true", help="hold out each scan once instead")
+    ev.add_argument(
+        "--methods",
+        default="online,batch,grid,octomap",
+        help="comma-separated subset of online,batch,grid,octomap",
+    )
+    ev.add_argument("--downsample", type=_positive_float, default=None, metavar="VOXEL")
+    ev.add_argument("--limit", type=_positive_int, default=None, help="use the first N scans")
+    ev.add_argument("--jobs", type=_positive_int, default=1, help="threads for the GP methods")
+    ev.add_argument("--out", default="eval_out", help="folder for roc.png, results.json")
+    ev.add_argument("--quiet", action="store_true", help="no progress messages")
+    ev.set_defaults(func=_cmd_eval)
     return parser
 
 

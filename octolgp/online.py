@@ -563,18 +563,52 @@ class OnlineMap:
                 arr[sel] = getattr(leaf, name)[flat]
         return out
 
-    def occupancy(self, points: object) -> FloatArray:
-        """P(occupied) at query points: the value of the voxel holding each point.
+    def _interpolated(self, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
+        """Multilinear interpolation of the voxel latent mean and variance at points.
+
+        The ``2**d`` voxel centres around each point are weighted by the usual
+        bilinear/trilinear weights; a corner no leaf holds (or outside the addressable
+        range) contributes the GP prior ``(0, σf²)``. Also returns which points lie in
+        a voxel that holds a value.
+        """
+        d = self.config.dim
+        res = self.config.resolution
+        prior = 1.0 if self.hyperparameters is None else self.hyperparameters.signal_variance
+        (own,) = self._lookup(X, ("mean",))
+        u = X / res - 0.5
+        base = np.floor(u)
+        frac = u - base
+        corners = np.array(list(np.ndindex(*(2,) * d)), dtype=np.float64)  # (2^d, d)
+        weights = np.prod(np.where(corners[:, None, :] == 1, frac, 1.0 - frac), axis=2)
+        centres = ((base[None, :, :] + corners[:, None, :] + 0.5) * res).reshape(-1, d)
+        inside = addressable_mask(centres, res, self.config.tree_depth)
+        mean = np.full(centres.shape[0], np.nan)
+        var = np.full(centres.shape[0], np.nan)
+        mean[inside], var[inside] = self._lookup(centres[inside], ("mean", "var"))
+        known = ~np.isnan(mean)
+        mean = np.where(known, mean, 0.0).reshape(weights.shape)
+        var = np.where(known, var, prior).reshape(weights.shape)
+        return (weights * mean).sum(axis=0), (weights * var).sum(axis=0), ~np.isnan(own)
+
+    def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
+        """P(occupied) at query points.
 
         Parameters
         ----------
         points : array_like of shape (q, d)
             World frame, metres.
+        interpolate : bool, optional
+            ``True`` (default): a continuous map. The latent mean and variance stored
+            at the ``2**d`` voxel centres around each point are interpolated
+            multilinearly (unknown corners count as the GP prior) and PLSC turns them
+            into a probability; at a voxel centre this is the voxel's own value.
+            ``False``: the stored value of the voxel holding the point (OctoMap's
+            semantics, piecewise constant).
 
         Returns
         -------
         ndarray of shape (q,)
-            In [0, 1]; exactly 0.5 where no leaf holds evidence.
+            In [0, 1]; exactly 0.5 where the voxel holding the point has no value.
 
         Raises
         ------
@@ -583,23 +617,34 @@ class OnlineMap:
         """
         X = self._points(points)
         self.flush()
-        (prob,) = self._lookup(X, ("prob",))
-        return np.where(np.isnan(prob), 0.5, prob)
+        if not interpolate or self.hyperparameters is None:
+            (prob,) = self._lookup(X, ("prob",))
+            return np.where(np.isnan(prob), 0.5, prob)
+        mean, var, known = self._interpolated(X)
+        hp = self.hyperparameters
+        prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+        return np.where(known, prob, 0.5)
 
-    def latent(self, points: object) -> tuple[FloatArray, FloatArray]:
-        """GP latent mean and variance at query points (the voxel holding each point).
+    def latent(self, points: object, *, interpolate: bool = True) -> tuple[FloatArray, FloatArray]:
+        """GP latent mean and variance at query points.
+
+        ``interpolate`` as in :meth:`occupancy` (multilinear between voxel centres, or
+        the voxel holding each point).
 
         Returns
         -------
         mean, var : ndarray of shape (q,)
-            The prior ``(0, σf²)`` where no leaf holds evidence (``σf² = 1`` before
-            hyperparameters exist).
+            The prior ``(0, σf²)`` where the voxel holding the point has no value
+            (``σf² = 1`` before hyperparameters exist).
         """
         X = self._points(points)
         self.flush()
-        mean, var = self._lookup(X, ("mean", "var"))
         prior = 1.0 if self.hyperparameters is None else self.hyperparameters.signal_variance
-        return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
+        if not interpolate:
+            mean, var = self._lookup(X, ("mean", "var"))
+            return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
+        mean, var, known = self._interpolated(X)
+        return np.where(known, mean, 0.0), np.where(known, var, prior)
 
     def voxel_centres(self, leaf: Leaf) -> FloatArray:
         """Centres of a leaf's voxels, shape (V, d), in the order of its value arrays."""

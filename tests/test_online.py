@@ -22,6 +22,7 @@ from octolgp import (
 from octolgp.errors import MapFileNotFound
 from octolgp.leaves import LeafGrid, assign_points, assign_segments
 from octolgp.partition import _clip_to_box
+from octolgp.plsc import occupancy_probability
 from octolgp.simulate import simulate_paper2d
 from octolgp.store import Leaf
 
@@ -233,20 +234,52 @@ def test_unknown_space_is_exactly_half_and_prior() -> None:
     assert free < 0.3
 
 
-def test_queries_read_the_voxel_values() -> None:
+def test_nearest_queries_read_the_voxel_values() -> None:
     m = OnlineMap(config2d(prune=False))
     m.insert_scan(room_scan((0.0, 0.0), size=2.0))
     _key, leaf = next(iter(m.leaves()))
     centres = m.grid.voxel_centres(leaf.index)
     jitter = np.random.default_rng(0).uniform(-0.049, 0.049, centres.shape)
-    assert np.array_equal(m.occupancy(centres + jitter), leaf.prob.astype(float))
-    mean, var = m.latent(centres)
+    probs = m.occupancy(centres + jitter, interpolate=False)
+    assert np.array_equal(probs, leaf.prob.astype(float))
+    mean, var = m.latent(centres + jitter, interpolate=False)
     assert np.array_equal(mean, leaf.mean.astype(float))
     assert np.array_equal(var, leaf.var.astype(float))
     pts, prob = m.occupied_voxels(0.5)
     assert (prob > 0.5).all()
     assert pts.shape == (prob.size, 2)
-    assert np.array_equal(m.occupancy(pts), prob)
+    assert np.array_equal(m.occupancy(pts, interpolate=False), prob)
+
+
+def test_interpolated_queries_are_multilinear_between_voxel_centres() -> None:
+    m = OnlineMap(config2d(prune=False))
+    m.insert_scan(room_scan((0.0, 0.0), size=2.0))
+    hp = m.hyperparameters
+    assert hp is not None
+    _key, leaf = next(iter(m.leaves()))
+    centres = m.grid.voxel_centres(leaf.index)
+    # At a voxel centre the continuous map is the voxel's own latent value.
+    mean, var = m.latent(centres)
+    np.testing.assert_allclose(mean, leaf.mean, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(var, leaf.var, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(m.occupancy(centres), leaf.prob, rtol=0, atol=1e-5)
+    # Inside a square of four known centres: the bilinear blend of their latents.
+    rng = np.random.default_rng(1)
+    c0 = centres[0]
+    q = c0 + rng.uniform(0.0, 0.1, (50, 2))
+    corners = c0 + 0.1 * np.array([[0, 0], [0, 1], [1, 0], [1, 1]])
+    cm, cv = m.latent(corners, interpolate=False)
+    fx, fy = ((q - c0) / 0.1).T
+    w = np.stack([(1 - fx) * (1 - fy), (1 - fx) * fy, fx * (1 - fy), fx * fy], axis=1)
+    mean, var = m.latent(q)
+    np.testing.assert_allclose(mean, w @ cm, atol=1e-9)
+    np.testing.assert_allclose(var, w @ cv, atol=1e-9)
+    expected = occupancy_probability(w @ cm, w @ cv + hp.noise_variance, hp.alpha, hp.beta)
+    np.testing.assert_allclose(m.occupancy(q), expected, atol=1e-12)
+    # Unknown stays exactly unknown, however close to known voxels.
+    far = np.array([[50.0, 50.0]])
+    assert m.occupancy(far)[0] == 0.5
+    assert m.latent(far)[1][0] == hp.signal_variance
 
 
 def test_pruned_leaves_hold_one_conservative_value() -> None:

@@ -1,0 +1,370 @@
+"""``octolgp eval``: the held-out-scan protocol run for every method on one log.
+
+For each seed (or, with ``leave_one_out``, for each scan):
+
+1. :func:`~octolgp.bench.heldout.heldout_split` holds out ``fraction`` of the scans in
+   contiguous runs of at most ``run`` scans;
+2. the held-out beams become labelled test points
+   (:func:`~octolgp.bench.heldout.heldout_points`): each endpoint occupied, one point
+   drawn uniformly along each beam up to ``short`` metres before the hit free;
+3. every method maps the training scans only, with the same hyperparameters
+   (learnt once per split on the first ``learn_scans`` training scans, as the online
+   map does, unless the config gives them):
+
+   - ``online``: :class:`~octolgp.online.OnlineMap`, scans inserted one by one;
+   - ``batch``: ``build_map(method="lgp")``, the paper's offline overlapping local GPs;
+   - ``grid``: ``build_map(method="ogm")``, the log-odds occupancy grid baseline;
+   - ``octomap``: the real OctoMap library (:mod:`~octolgp.bench.octomap_ref`), when
+     ``pyoctomap`` is installed (skipped otherwise, and said so in the report);
+
+4. each map's ``P(occupied)`` at the test points gives the ROC AUC (unknown points
+   scored 0.5) and the fraction of test points it leaves unknown (exactly 0.5).
+
+The report holds per-split numbers, mean ± std per method, build seconds and the ROC
+curve of every method on every split; :func:`plot_roc` draws them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from sklearn.metrics import roc_curve
+
+from octolgp.bench.heldout import auc, heldout_points, heldout_split, unknown_fraction
+from octolgp.config import Hyperparameters, MapConfig
+from octolgp.errors import OctolgpError
+from octolgp.scan import Scan
+
+FloatArray = NDArray[np.float64]
+
+METHODS = ("online", "batch", "grid", "octomap")
+"""Method names of :func:`evaluate_log`, in report order."""
+
+LABELS = {
+    "online": "octolgp online",
+    "batch": "octolgp batch (lgp)",
+    "grid": "grid (ogm)",
+    "octomap": "OctoMap",
+}
+
+ROC_POINTS = 200
+"""ROC curves are resampled to this many false-positive rates (keeps reports small)."""
+
+
+@dataclass(frozen=True, slots=True)
+class SplitResult:
+    """One method on one split.
+
+    Attributes
+    ----------
+    auc : float
+        ROC AUC over all test points, unknown points scored 0.5.
+    unknown_fraction : float
+        Share of test points the map leaves at exactly 0.5.
+    seconds : float
+        Wall time to build the map from the training scans.
+    fpr, tpr : ndarray of shape (ROC_POINTS,)
+        The ROC curve, resampled at evenly spaced false-positive rates.
+    """
+
+    auc: float
+    unknown_fraction: float
+    seconds: float
+    fpr: FloatArray
+    tpr: FloatArray
+
+
+@dataclass
+class EvalReport:
+    """Everything :func:`evaluate_log` measured.
+
+    Attributes
+    ----------
+    splits : list of str
+        Split names (``seed 0``, ... or ``scan 3``, ...).
+    n_points, n_occupied : list of int
+        Test points per split, and how many are occupied.
+    results : dict
+        ``method -> list of SplitResult``, one per split, in :data:`METHODS` order.
+    skipped : dict
+        ``method -> reason`` for methods that could not run (OctoMap not installed).
+    hyperparameters : list of Hyperparameters
+        The ones every method used, per split.
+    """
+
+    splits: list[str] = field(default_factory=list)
+    n_points: list[int] = field(default_factory=list)
+    n_occupied: list[int] = field(default_factory=list)
+    results: dict[str, list[SplitResult]] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    hyperparameters: list[Hyperparameters] = field(default_factory=list)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """Mean and standard deviation (ddof 0) of AUC, unknown fraction and seconds per method."""
+        out: dict[str, dict[str, float]] = {}
+        for method, rows in self.results.items():
+            aucs = np.array([r.auc for r in rows])
+            unk = np.array([r.unknown_fraction for r in rows])
+            secs = np.array([r.seconds for r in rows])
+            out[method] = {
+                "auc_mean": float(aucs.mean()),
+                "auc_std": float(aucs.std()),
+                "unknown_mean": float(unk.mean()),
+                "unknown_std": float(unk.std()),
+                "seconds_mean": float(secs.mean()),
+            }
+        return out
+
+    def table(self) -> str:
+        """A markdown table: one row per method, AUC mean ± std, unknown fraction, build s."""
+        lines = [
+            f"{len(self.splits)} splits, {int(np.mean(self.n_points)) if self.n_points else 0} "
+            "test points per split on average",
+            "",
+            "| method | AUC (mean ± std) | unknown fraction | build s (mean) |",
+            "|---|---|---|---|",
+        ]
+        for method, s in self.summary().items():
+            lines.append(
+                f"| {LABELS[method]} | {s['auc_mean']:.4f} ± {s['auc_std']:.4f} | "
+                f"{s['unknown_mean']:.3f} | {s['seconds_mean']:.1f} |"
+            )
+        for method, why in self.skipped.items():
+            lines.append(f"| {LABELS[method]} | not run: {why} | | |")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict[str, Any]:
+        """A JSON-ready dict (no ROC arrays)."""
+        return {
+            "splits": self.splits,
+            "n_points": self.n_points,
+            "n_occupied": self.n_occupied,
+            "summary": self.summary(),
+            "per_split": {
+                m: [
+                    {"auc": r.auc, "unknown_fraction": r.unknown_fraction, "seconds": r.seconds}
+                    for r in rows
+                ]
+                for m, rows in self.results.items()
+            },
+            "skipped": self.skipped,
+            "hyperparameters": [dataclasses.asdict(hp) for hp in self.hyperparameters],
+        }
+
+
+def _check_methods(methods: Sequence[str]) -> tuple[str, ...]:
+    """Validate method names; return them in :data:`METHODS` order, without repeats."""
+    if isinstance(methods, str):
+        raise OctolgpError("methods must be a sequence of names, not one string")
+    unknown = sorted(set(methods) - set(METHODS))
+    if unknown or not methods:
+        raise OctolgpError(
+            f"methods: unknown {unknown or 'empty list'} (choose from {', '.join(METHODS)})"
+        )
+    return tuple(m for m in METHODS if m in set(methods))
+
+
+def _roc(labels: NDArray[np.int8], probs: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The ROC curve resampled at :data:`ROC_POINTS` evenly spaced false-positive rates."""
+    fpr, tpr, _ = roc_curve(labels, probs)
+    grid = np.linspace(0.0, 1.0, ROC_POINTS)
+    return grid, np.interp(grid, fpr, tpr)
+
+
+def _builders(
+    config: MapConfig, n_jobs: int, downsample: float | None
+) -> dict[str, Callable[[list[Scan]], Any]]:
+    """One function per method: training scans -> a map with ``occupancy(points)``."""
+    from octolgp.bench.octomap_ref import OctomapReference
+    from octolgp.build import build_map
+    from octolgp.online import OnlineMap
+
+    def online(train: list[Scan]) -> Any:
+        cfg = dataclasses.replace(config, online=dataclasses.replace(config.online, n_jobs=n_jobs))
+        m = OnlineMap(cfg)
+        for s in train:
+            m.insert_scan(s)
+        m.flush()
+        return m
+
+    def octomap(train: list[Scan]) -> Any:
+        ref = OctomapReference(config.resolution, config.dim)
+        for s in train:
+            ref.insert_scan(s)
+        return ref
+
+    return {
+        "online": online,
+        "batch": lambda train: build_map(train, config, method="lgp", n_jobs=n_jobs),
+        "grid": lambda train: build_map(train, config, method="ogm"),
+        "octomap": octomap,
+    }
+
+
+def evaluate_log(
+    scans: Sequence[Scan],
+    config: MapConfig,
+    *,
+    seeds: int = 5,
+    fraction: float = 0.1,
+    run: int = 40,
+    short: float = 0.1,
+    leave_one_out: bool = False,
+    methods: Sequence[str] = METHODS,
+    n_jobs: int = 1,
+    downsample: float | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> EvalReport:
+    """Run the held-out-scan protocol on a log for several methods.
+
+    Parameters
+    ----------
+    scans : sequence of Scan
+        The whole log, world frame, all of dimension ``config.dim``; at least 2 scans.
+    config : MapConfig
+        Map settings for every method (resolution, dimension). With
+        ``hyperparameters=None`` they are learnt per split on the first
+        ``config.online.learn_scans`` training scans and shared by the GP methods.
+    seeds : int
+        Number of random splits (seeds ``0 .. seeds-1``), ``>= 1``.
+    fraction, run : float, int
+        Held-out share and longest run of consecutive held-out scans
+        (see :func:`~octolgp.bench.heldout.heldout_split`).
+    short : float
+        Metres between the last free test point and the hit, ``>= 0``.
+    leave_one_out : bool
+        Instead of random splits, hold out each scan once (for logs of a few big scans,
+        such as the 3DTK set); ``seeds``, ``fraction`` and ``run`` are then unused.
+    methods : sequence of str
+        Any of :data:`METHODS`; ``"octomap"`` is skipped (and reported) without
+        ``pyoctomap``.
+    n_jobs : int
+        Threads over leaves/clusters for the GP methods.
+    downsample : float, optional
+        Voxel edge (metres) of a voxel-grid filter applied to the training scans of
+        every method (:meth:`Scan.downsample`); test points come from the raw
+        held-out scans.
+    progress : callable, optional
+        Called with a short message before each map build.
+
+    Returns
+    -------
+    EvalReport
+
+    Raises
+    ------
+    OctolgpError
+        On fewer than 2 scans, mixed dimensions, bad method names or bad numbers.
+    """
+    from octolgp.bench.octomap_ref import octomap_available
+    from octolgp.learning import learn_hyperparameters
+
+    scan_list = list(scans)
+    if len(scan_list) < 2:
+        raise OctolgpError(f"eval: needs at least 2 scans, got {len(scan_list)}")
+    if any(s.dim != config.dim for s in scan_list):
+        raise OctolgpError(f"eval: every scan must have dimension {config.dim}")
+    wanted = _check_methods(methods)
+    if isinstance(seeds, bool) or not isinstance(seeds, int) or seeds < 1:
+        raise OctolgpError(f"eval: seeds must be an integer >= 1, got {seeds!r}")
+    if downsample is not None and not (math.isfinite(downsample) and downsample > 0):
+        raise OctolgpError(f"eval: downsample must be a finite number > 0, got {downsample!r}")
+    report = EvalReport()
+    if "octomap" in wanted and not octomap_available():
+        report.skipped["octomap"] = "pyoctomap is not installed (pip install octolgp[octomap])"
+        wanted = tuple(m for m in wanted if m != "octomap")
+    report.results = {m: [] for m in wanted}
+
+    n = len(scan_list)
+    if leave_one_out:
+        splits = [(f"scan {i}", np.delete(np.arange(n), i), np.array([i])) for i in range(n)]
+    else:
+        splits = [
+            (f"seed {seed}", *heldout_split(n, fraction=fraction, run=run, seed=seed))
+            for seed in range(seeds)
+        ]
+    for index, (name, train_idx, test_idx) in enumerate(splits):
+        test = [scan_list[i] for i in test_idx]
+        points, labels = heldout_points(test, np.random.default_rng(index), 1, short)
+        train = [scan_list[i] for i in train_idx]
+        if downsample is not None:
+            train = [s.downsample(downsample) for s in train]
+        hp = config.hyperparameters
+        if hp is None:
+            if progress:
+                progress(f"{name}: learning hyperparameters")
+            hp = learn_hyperparameters(train[: config.online.learn_scans], config)
+        fixed = dataclasses.replace(config, hyperparameters=hp)
+        builders = _builders(fixed, n_jobs, downsample)
+        report.splits.append(name)
+        report.n_points.append(int(labels.size))
+        report.n_occupied.append(int(np.count_nonzero(labels)))
+        report.hyperparameters.append(hp)
+        for method in wanted:
+            if progress:
+                progress(f"{name}: {LABELS[method]} on {len(train)} scans")
+            t0 = time.perf_counter()
+            built = builders[method](train)
+            seconds = time.perf_counter() - t0
+            probs = np.asarray(built.occupancy(points), dtype=np.float64)
+            close = getattr(built, "close", None)
+            if close is not None:
+                close()
+            fpr, tpr = _roc(labels, probs)
+            report.results[method].append(
+                SplitResult(auc(labels, probs), unknown_fraction(probs), seconds, fpr, tpr)
+            )
+    return report
+
+
+def plot_roc(report: EvalReport, path: str | Path, title: str = "") -> None:
+    """Draw every method's ROC curves (one thin line per split, mean curve thick) as a PNG.
+
+    Parameters
+    ----------
+    report : EvalReport
+    path : str or Path
+        Output ``.png``; its folder is created.
+    title : str
+        Figure title (the log's name, say).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 5))
+    summary = report.summary()
+    for i, (method, rows) in enumerate(report.results.items()):
+        colour = f"C{i}"
+        for r in rows:
+            ax.plot(r.fpr, r.tpr, color=colour, lw=0.5, alpha=0.35)
+        mean_tpr = np.mean([r.tpr for r in rows], axis=0)
+        s = summary[method]
+        ax.plot(
+            rows[0].fpr,
+            mean_tpr,
+            color=colour,
+            lw=2,
+            label=f"{LABELS[method]}: AUC {s['auc_mean']:.4f} ± {s['auc_std']:.4f}",
+        )
+    ax.plot([0, 1], [0, 1], color="0.7", lw=0.8, ls="--")
+    ax.set_xlabel("false-positive rate (free called occupied)")
+    ax.set_ylabel("true-positive rate (occupied found)")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1.01)
+    ax.set_title(title or "held-out scans: ROC")
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
