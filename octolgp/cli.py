@@ -68,7 +68,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     if not (args.short >= 0.0 and args.short < float("inf")):
         raise OctolgpError(f"--short must be a finite number >= 0, got {args.short}")
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    first, scans = _first_and_rest(args.scans, args.format)
+    first, scans = _first_and_rest(args.scans, args.format, args.skip_bad)
     scan_list = list(itertools.islice(scans, args.limit))
     config = MapConfig(dim=first.dim, resolution=args.resolution)
 
@@ -101,17 +101,32 @@ def _cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
-def _first_and_rest(path: str, fmt: str | None) -> tuple[Any, Iterator[Any]]:
-    """The first scan of a log (to learn its dimension) and an iterator over all of them."""
+def _first_and_rest(
+    path: str, fmt: str | None, skip_bad: bool = False
+) -> tuple[Any, Iterator[Any]]:
+    """The first scan of a log (to learn its dimension) and an iterator over all of them.
+
+    With ``skip_bad`` the reader skips malformed parts; once the iterator is exhausted a
+    line on stderr says how many it skipped.
+    """
     import itertools
 
     from octolgp.io import load_scans
 
-    it = iter(load_scans(path, format=fmt))
+    reader = load_scans(path, format=fmt, skip_bad=skip_bad)
+    it = iter(reader)
+
+    def report() -> Iterator[Any]:
+        # a generator: runs only once the reader is exhausted
+        skipped = getattr(reader, "skipped", 0)
+        if skip_bad and skipped:
+            print(f"octolgp: skipped {skipped} malformed part(s) of {path}", file=sys.stderr)
+        yield from ()
+
     first = next(it, None)
     if first is None:
         raise OctolgpError(f"SCANS {path!r} holds no scans")
-    return first, itertools.chain([first], it)
+    return first, itertools.chain([first], it, report())
 
 
 def _recording(args: argparse.Namespace) -> Any:
@@ -196,7 +211,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    first, scans = _first_and_rest(args.scans, args.format)
+    first, scans = _first_and_rest(args.scans, args.format, args.skip_bad)
     return _map_scans(scans, first, args)
 
 
@@ -342,8 +357,15 @@ def make_parser() -> argparse.ArgumentParser:
     sim.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser("run", help="map a scan log online, scan by scan")
-    run.add_argument("scans", help="scan log: npz, CARMEN .log/.clf[.gz], 3DTK folder, .rrd")
+    run.add_argument(
+        "scans",
+        help="scan log: npz, CARMEN .log/.clf[.gz], 3DTK folder, .rrd, ROS bag, PCD, PLY, "
+        "OctoMap scan.dat/.graph",
+    )
     run.add_argument("--format", default=None, help="scan log format (default: guessed)")
+    run.add_argument(
+        "--skip-bad", action="store_true", help="skip malformed lines/messages and count them"
+    )
     _mapping_options(run)
     run.set_defaults(func=_cmd_run)
 
@@ -393,8 +415,11 @@ def make_parser() -> argparse.ArgumentParser:
             "and report ROC AUC and the unknown fraction (mean ± std over seeds)."
         ),
     )
-    ev.add_argument("scans", help="scan log: npz, CARMEN, 3DTK folder, .rrd, ...")
+    ev.add_argument("scans", help="scan log, any format run reads")
     ev.add_argument("--format", default=None, help="scan log format (default: guessed)")
+    ev.add_argument(
+        "--skip-bad", action="store_true", help="skip malformed lines/messages and count them"
+    )
     ev.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
     ev.add_argument("--seeds", type=_positive_int, default=5, help="random splits")
     ev.add_argument("--fraction", type=_positive_float, default=0.1, help="held-out share")

@@ -130,3 +130,41 @@ def test_run_and_query_bad_input_exit_2(argv: list[str], tmp_path: Path) -> None
     assert proc.returncode == 2, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1
     assert "Traceback" not in proc.stderr
+
+
+def test_run_skip_bad_skips_and_counts_malformed_lines(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    lines = INTEL20.read_text().splitlines(keepends=True)
+    laser = [i for i, line in enumerate(lines) if line.startswith("FLASER")]
+    lines[laser[3]] = "FLASER 180 1.0 2.0 oops\n"
+    bad = tmp_path / "bad.log"
+    bad.write_text("".join(lines))
+    out = tmp_path / "m.octolgp"
+    argv = ["run", str(bad), "--out", str(out), "--learn-scans", "3", "--quiet", "--limit", "8"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert f"bad.log:{laser[3] + 1}" in err[0]
+    assert main([*argv, "--overwrite", "--skip-bad", "--limit", "30"]) == 0
+    err = capsys.readouterr().err
+    assert "skipped 1 malformed" in err
+    from octolgp import OnlineMap
+
+    with OnlineMap.open(out) as m:
+        assert m.n_scans == len(laser) - 1
+
+
+@pytest.mark.parametrize(
+    "fixture", ["rosbag/intel.bag", "pointcloud/scan_nodes.dat", "pointcloud/cloud_binary.pcd"]
+)
+def test_run_maps_every_loader_format(tmp_path: Path, fixture: str) -> None:
+    from octolgp import OnlineMap, load_scans
+
+    src = INTEL20.parent / fixture
+    out = tmp_path / "m.octolgp"
+    argv = ["run", str(src), "--out", str(out), "--resolution", "0.2", "--quiet"]
+    assert main([*argv, "--learn-scans", "2"]) == 0
+    with OnlineMap.open(out) as m:
+        assert m.n_scans == len(list(load_scans(src)))
+        assert m.occupied_voxels(0.5)[0].shape[0] > 0

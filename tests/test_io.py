@@ -187,6 +187,8 @@ def test_foreign_or_unknown_format_raises_at_call(tmp_path: Path) -> None:
     with pytest.raises(OctolgpError):
         load_scans(bad_gzip)
     with pytest.raises(OctolgpError, match="unknown format"):
+        load_scans(FIRST20, format="las")
+    with pytest.raises(OctolgpError, match="not a ROS bag"):
         load_scans(FIRST20, format="rosbag")
     with pytest.raises(OctolgpError, match="not a file"):
         load_scans(tmp_path)
@@ -361,3 +363,58 @@ def test_fr079_uses_param_max_range() -> None:
     assert n_scans == 4791
     assert reader.no_return == pytest.approx(80.99)  # PARAM robot_front_laser_max
     assert n_no_return == 36_004
+
+
+FIXTURES = Path(__file__).parent / "data"
+
+
+@pytest.mark.parametrize(
+    ("path", "fmt", "dim"),
+    [
+        ("intel_first20.log", "carmen", 2),
+        ("3dtk", "3dtk", 3),
+        ("rosbag/intel.bag", "rosbag", 2),
+        ("rosbag/intel_ros2", "rosbag", 2),
+        ("rosbag/cloud_ros2", "rosbag", 3),
+        ("pointcloud/cloud_ascii.pcd", "pcd", 3),
+        ("pointcloud/cloud_binary.pcd", "pcd", 3),
+        ("pointcloud/cloud_compressed.pcd", "pcd", 3),
+        ("pointcloud/cloud_ascii.ply", "ply", 3),
+        ("pointcloud/cloud_binary.ply", "ply", 3),
+        ("pointcloud/scan_small.dat", "scandat", 3),
+        ("pointcloud/scan_nodes.dat", "scandat", 3),
+        ("pointcloud/two_scans.graph", "graph", 3),
+    ],
+)
+def test_load_scans_guesses_every_format(path: str, fmt: str, dim: int) -> None:
+    p = FIXTURES / path
+    assert detect_format(p) == fmt
+    guessed = list(load_scans(p))
+    named = list(load_scans(p, format=fmt))
+    assert guessed
+    assert all(s.dim == dim for s in guessed)
+    assert len(guessed) == len(named)
+    for a, b in zip(guessed, named, strict=True):
+        assert np.array_equal(a.points, b.points)
+        assert np.array_equal(a.origin, b.origin)
+
+
+def test_the_same_cloud_reads_the_same_in_every_point_cloud_format() -> None:
+    clouds = [
+        next(iter(load_scans(FIXTURES / "pointcloud" / name)))
+        for name in ("cloud_ascii.pcd", "cloud_binary.pcd", "cloud_compressed.pcd")
+    ]
+    for c in clouds[1:]:
+        assert np.array_equal(c.points, clouds[0].points)
+        assert np.array_equal(c.origin, clouds[0].origin)
+
+
+@pytest.mark.parametrize(
+    "name", ["cloud_binary.pcd", "cloud_binary.ply", "two_scans.graph", "scan_small.dat"]
+)
+def test_a_cut_point_cloud_file_raises_naming_the_file(tmp_path: Path, name: str) -> None:
+    data = (FIXTURES / "pointcloud" / name).read_bytes()
+    cut = tmp_path / name
+    cut.write_bytes(data[: len(data) * 2 // 3 + 1] + (b"x 1\n" if name.endswith(".dat") else b""))
+    with pytest.raises(OctolgpError, match=name.replace(".", r"\.")):
+        list(load_scans(cut))

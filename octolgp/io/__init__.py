@@ -12,6 +12,21 @@ Supported formats (``format=`` names):
   exact scans that :func:`~octolgp.io.rrd.log_scan` wrote, else the ``Points3D``/``Points2D``
   rows of any recording posed by its ``Transform3D``. :func:`~octolgp.io.rrd.read_rrd` takes
   the options (points entity, pose entity, timeline, ``max_range``).
+- ``"rosbag"``: a ROS 1 ``.bag`` or a ROS 2 bag (directory with ``metadata.yaml``, or its
+  ``.db3``/``.mcap``) read with ``rosbags`` (:mod:`octolgp.io.rosbag`): ``LaserScan`` or
+  ``PointCloud2``, posed by ``/tf`` or a ``PoseStamped``/``Odometry`` topic; streamed.
+  :func:`~octolgp.io.rosbag.read_rosbag` takes the options (topics, fixed frame).
+- ``"pcd"``: PCL point clouds (ascii, binary, binary_compressed), one file or a directory of
+  ``.pcd`` files, one scan each, posed by ``VIEWPOINT`` (:mod:`octolgp.io.pcd`).
+- ``"ply"``: PLY point clouds (ascii or binary), one file or a directory of ``.ply``
+  (:mod:`octolgp.io.ply`); origin from a ``comment origin x y z`` line, else (0, 0, 0).
+- ``"scandat"``: OctoMap's plain ``scan.dat`` (``x y z`` lines, sensor at the origin) and its
+  ``NODE x y z roll pitch yaw`` scan-graph text form, optionally ``.gz``/``.bz2``.
+- ``"graph"``: OctoMap's binary scan graph ``.graph`` (:mod:`octolgp.io.octomap_graph`).
+
+Every reader streams and takes ``skip_bad``: malformed lines, messages or files are then
+skipped and counted (the reader's ``skipped``) instead of raising an error that names the
+file and line.
 """
 
 from __future__ import annotations
@@ -24,6 +39,18 @@ from numpy.typing import ArrayLike
 from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.io.carmen import CarmenReader, looks_like_carmen, read_carmen
 from octolgp.io.npz import read_npz, read_truth, write_npz
+from octolgp.io.octomap_graph import (
+    GraphReader,
+    ScanDatReader,
+    looks_like_graph,
+    looks_like_scan_dat,
+    read_graph,
+    read_scan_dat,
+    write_graph,
+)
+from octolgp.io.pcd import PcdReader, looks_like_pcd, read_pcd
+from octolgp.io.ply import PlyReader, looks_like_ply, read_ply
+from octolgp.io.rosbag import RosbagReader, looks_like_rosbag, read_rosbag
 from octolgp.io.rrd import RrdScanReader, log_scan, looks_like_rrd, read_rrd
 from octolgp.io.threedtk import ThreeDTKReader, looks_like_3dtk, read_3dtk
 from octolgp.scan import Scan
@@ -31,21 +58,32 @@ from octolgp.scan import Scan
 __all__ = [
     "SCAN_FORMATS",
     "CarmenReader",
+    "GraphReader",
+    "PcdReader",
+    "PlyReader",
+    "RosbagReader",
     "RrdScanReader",
+    "ScanDatReader",
     "ThreeDTKReader",
     "detect_format",
     "load_scans",
     "log_scan",
     "read_3dtk",
     "read_carmen",
+    "read_graph",
     "read_npz",
+    "read_pcd",
+    "read_ply",
+    "read_rosbag",
     "read_rrd",
+    "read_scan_dat",
     "read_truth",
     "save_scan_log",
+    "write_graph",
     "write_npz",
 ]
 
-SCAN_FORMATS = ("npz", "carmen", "3dtk", "rrd")
+SCAN_FORMATS = ("npz", "carmen", "3dtk", "rrd", "rosbag", "pcd", "ply", "scandat", "graph")
 """Names accepted by ``load_scans(..., format=...)``."""
 
 _CARMEN_SUFFIXES = (".log", ".clf")
@@ -76,8 +114,14 @@ def detect_format(path: str | Path) -> str:
     p = Path(path)
     if not p.exists():
         raise MapFileNotFound(f"scan log {str(p)!r} does not exist")
+    if looks_like_rosbag(p):
+        return "rosbag"
     if looks_like_3dtk(p):
         return "3dtk"
+    if p.is_dir() and looks_like_pcd(p):
+        return "pcd"
+    if p.is_dir() and looks_like_ply(p):
+        return "ply"
     if not p.is_file():
         raise OctolgpError(f"scan log {str(p)!r} is not a file")
     # Suffix first: x.npz, x.log, x.clf, x.log.gz, x.clf.gz.
@@ -101,6 +145,14 @@ def detect_format(path: str | Path) -> str:
         return "npz"
     if looks_like_rrd(p):
         return "rrd"
+    for name, sniff in (
+        ("pcd", looks_like_pcd),
+        ("ply", looks_like_ply),
+        ("graph", looks_like_graph),
+        ("scandat", looks_like_scan_dat),
+    ):
+        if sniff(p):
+            return name
     if (magic[:2] == _GZIP_MAGIC or magic.isascii()) and magic and looks_like_carmen(p):
         return "carmen"
     raise OctolgpError(
@@ -120,9 +172,8 @@ def load_scans(
     format : str, optional
         One of :data:`SCAN_FORMATS`; chosen by :func:`detect_format` when omitted.
     skip_bad : bool
-        CARMEN and 3DTK: skip malformed laser or point lines and count them (the returned
-        :class:`~octolgp.io.carmen.CarmenReader` or
-        :class:`~octolgp.io.threedtk.ThreeDTKReader` has ``skipped``) instead of raising.
+        Skip malformed lines, messages or files and count them (the returned reader's
+        ``skipped``) instead of raising; every format but npz, which is validated whole.
         Rerun: skip invalid scans (:class:`~octolgp.io.rrd.RrdScanReader` has ``skipped`` and
         ``notes``); a cut-off tail is always skipped and reported there.
 
@@ -153,6 +204,16 @@ def load_scans(
         return ThreeDTKReader(p, skip_bad=skip_bad)
     if format == "rrd":
         return RrdScanReader(p, skip_bad=skip_bad)
+    if format == "rosbag":
+        return RosbagReader(p, skip_bad=skip_bad)
+    if format == "pcd":
+        return PcdReader(p, skip_bad=skip_bad)
+    if format == "ply":
+        return PlyReader(p, skip_bad=skip_bad)
+    if format == "scandat":
+        return ScanDatReader(p, skip_bad=skip_bad)
+    if format == "graph":
+        return GraphReader(p, skip_bad=skip_bad)
     raise OctolgpError(f"load_scans: unknown format {format!r} (supported: {SCAN_FORMATS})")
 
 

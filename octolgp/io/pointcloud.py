@@ -1,0 +1,350 @@
+"""Shared machinery of the point-cloud scan readers: PCD, PLY, OctoMap ``scan.dat`` and ``.graph``.
+
+The readers themselves are in :mod:`octolgp.io.pcd`, :mod:`octolgp.io.ply` and
+:mod:`octolgp.io.octomap_graph`; this module holds what they share:
+
+- :class:`CloudReader`, the base of every reader: a one-pass iterator of
+  :class:`~octolgp.scan.Scan` with the ``skip_bad`` policy. A malformed line or binary record is
+  skipped and counted (``skipped``, ``bad_lines``); a malformed whole scan (bad header, truncated
+  binary data, no points) is skipped and counted too (``skipped``, ``bad_scans``, with the
+  message that would have been raised). Without ``skip_bad`` both raise :class:`OctolgpError`
+  naming the file and the line, point or byte offset.
+- :func:`parse_ascii`, which parses ``x y z``-style lines with one :func:`numpy.loadtxt` call per
+  chunk and bisects a failing chunk down to its malformed lines.
+- Rotations: Hamilton quaternions ``(w, x, y, z)`` and OctoMap's roll/pitch/yaw.
+"""
+
+from __future__ import annotations
+
+import bz2
+import gzip
+import itertools
+import lzma
+import math
+import warnings
+import zlib
+from collections.abc import Generator, Iterator
+from pathlib import Path
+from typing import IO, ClassVar
+
+import numpy as np
+
+from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.scan import FloatArray, Scan
+
+__all__ = [
+    "CloudReader",
+    "list_cloud_files",
+    "open_text",
+    "parse_ascii",
+    "quaternion_from_rotation",
+    "read_exact_lines",
+    "rotation_from_quaternion",
+    "rotation_from_rpy",
+]
+
+CHUNK_LINES = 1 << 16
+"""Text lines parsed per :func:`numpy.loadtxt` call."""
+CHUNK_POINTS = 1 << 16
+"""Binary records decoded per read."""
+READ_ERRORS = (OSError, EOFError, lzma.LZMAError, zlib.error)
+_DIAGNOSE_LINES = 32  # a failing block this small is checked line by line
+
+
+def open_text(path: Path) -> IO[str]:
+    """Open a text file, decompressing xz, gzip or bzip2 by its magic bytes."""
+    with open(path, "rb") as fh:
+        magic = fh.read(6)
+    if magic.startswith(b"\xfd7zXZ\x00"):
+        return lzma.open(path, "rt", encoding="utf-8", errors="replace")
+    if magic.startswith(b"\x1f\x8b"):
+        return gzip.open(path, "rt", encoding="utf-8", errors="replace")
+    if magic.startswith(b"BZh"):
+        return bz2.open(path, "rt", encoding="utf-8", errors="replace")
+    return open(path, encoding="utf-8", errors="replace")
+
+
+def list_cloud_files(path: Path, suffix: str, what: str) -> tuple[Path, ...]:
+    """One file, or a directory's ``*suffix`` files (case-insensitive) sorted by name."""
+    if path.is_file():
+        return (path,)
+    if path.is_dir():
+        files = sorted(
+            (f for f in path.iterdir() if f.is_file() and f.suffix.lower() == suffix),
+            key=lambda f: f.name,
+        )
+        if not files:
+            raise OctolgpError(f"{what} scans: no {suffix} files in {str(path)!r}")
+        return tuple(files)
+    raise OctolgpError(f"{what} scans: {str(path)!r} is neither a file nor a directory")
+
+
+def rotation_from_quaternion(w: float, x: float, y: float, z: float) -> FloatArray:
+    """Rotation matrix of the Hamilton quaternion ``w + xi + yj + zk`` (normalised first).
+
+    Returns
+    -------
+    ndarray of shape (3, 3)
+        ``R`` with ``p_parent = R @ p_child``.
+
+    Raises
+    ------
+    OctolgpError
+        On a non-finite or zero quaternion.
+    """
+    q = np.array([w, x, y, z], dtype=np.float64)
+    n = float(np.linalg.norm(q))
+    if not np.isfinite(q).all() or n == 0.0:
+        raise OctolgpError(f"quaternion {tuple(q.tolist())} is not a rotation")
+    w, x, y, z = (q / n).tolist()
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def quaternion_from_rotation(R: FloatArray) -> tuple[float, float, float, float]:
+    """Unit Hamilton quaternion ``(w, x, y, z)``, ``w >= 0``, of a rotation matrix (3, 3)."""
+    m = np.asarray(R, dtype=np.float64)
+    # Shepperd's method: pivot on the largest of w², x², y², z².
+    t = np.array(
+        [
+            1 + m[0, 0] + m[1, 1] + m[2, 2],
+            1 + m[0, 0] - m[1, 1] - m[2, 2],
+            1 - m[0, 0] + m[1, 1] - m[2, 2],
+            1 - m[0, 0] - m[1, 1] + m[2, 2],
+        ]
+    )
+    k = int(np.argmax(t))
+    s = 0.5 / math.sqrt(max(float(t[k]), 1e-300))
+    if k == 0:
+        q = [0.25 / s, (m[2, 1] - m[1, 2]) * s, (m[0, 2] - m[2, 0]) * s, (m[1, 0] - m[0, 1]) * s]
+    elif k == 1:
+        q = [(m[2, 1] - m[1, 2]) * s, 0.25 / s, (m[0, 1] + m[1, 0]) * s, (m[0, 2] + m[2, 0]) * s]
+    elif k == 2:
+        q = [(m[0, 2] - m[2, 0]) * s, (m[0, 1] + m[1, 0]) * s, 0.25 / s, (m[1, 2] + m[2, 1]) * s]
+    else:
+        q = [(m[1, 0] - m[0, 1]) * s, (m[0, 2] + m[2, 0]) * s, (m[1, 2] + m[2, 1]) * s, 0.25 / s]
+    qa = np.array(q) / np.linalg.norm(q)
+    if qa[0] < 0:
+        qa = -qa
+    return float(qa[0]), float(qa[1]), float(qa[2]), float(qa[3])
+
+
+def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> FloatArray:
+    """OctoMap's ``pose6d``/``Quaternion(roll, pitch, yaw)`` rotation, radians.
+
+    ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (``octomap/src/math/Quaternion.cpp``), shape (3, 3).
+    """
+    cr, sr = math.cos(roll), math.sin(roll)
+    cp, sp = math.cos(pitch), math.sin(pitch)
+    cy, sy = math.cos(yaw), math.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def _parse_block(
+    lines: list[str], ncols: int, xyz: list[int], allow_nan: bool, comments: str | None
+) -> FloatArray | None:
+    """Parse lines in one call, keep the ``xyz`` columns; ``None`` if any line is malformed."""
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # "input contained no data"
+            arr = np.loadtxt(lines, dtype=np.float64, comments=comments, ndmin=2)
+    except ValueError:
+        return None
+    if arr.size == 0:
+        return np.empty((0, 3))
+    if arr.shape[1] != ncols:
+        return None
+    pts = arr[:, xyz]
+    if (np.isinf(pts) if allow_nan else ~np.isfinite(pts)).any():
+        return None
+    return pts
+
+
+def _line_error(line: str, ncols: int, allow_nan: bool, comments: str | None) -> str:
+    """Say what is wrong with a line that :func:`_parse_block` rejects."""
+    text = line.split(comments, 1)[0] if comments else line
+    tokens = text.split()
+    if len(tokens) != ncols:
+        return f"expected {ncols} numbers, got {len(tokens)} fields in {line.strip()[:80]!r}"
+    try:
+        [float(t) for t in tokens]
+    except ValueError:
+        return f"non-numeric value in {line.strip()[:80]!r}"
+    return "inf in x/y/z" if allow_nan else "NaN or inf in x/y/z"
+
+
+def parse_ascii(
+    reader: CloudReader,
+    lines: list[str],
+    path: Path,
+    start: int,
+    *,
+    ncols: int,
+    xyz: list[int],
+    allow_nan: bool = False,
+    comments: str | None = None,
+) -> list[FloatArray]:
+    """Parse data lines whose first is line ``start`` (1-based) into ``(k, 3)`` x/y/z blocks.
+
+    A malformed line (wrong field count, non-numeric, non-finite x/y/z; NaN is allowed with
+    ``allow_nan``) goes to :meth:`CloudReader.bad_line`: raised, or skipped and counted. Blank
+    lines, and comment lines with ``comments``, yield nothing. Chunks that fail are bisected, so
+    only bad input is parsed line by line.
+    """
+    out: list[FloatArray] = []
+    stack = [(0, len(lines))]
+    while stack:  # in order: the first malformed line is the first one found
+        lo, hi = stack.pop()
+        pts = _parse_block(lines[lo:hi], ncols, xyz, allow_nan, comments)
+        if pts is not None:
+            if len(pts):
+                out.append(pts)
+        elif hi - lo > _DIAGNOSE_LINES:
+            mid = (lo + hi) // 2
+            stack += [(mid, hi), (lo, mid)]
+        else:
+            for i in range(lo, hi):
+                pts = _parse_block(lines[i : i + 1], ncols, xyz, allow_nan, comments)
+                if pts is not None:
+                    if len(pts):
+                        out.append(pts)
+                else:
+                    why = _line_error(lines[i], ncols, allow_nan, comments)
+                    reader.bad_line(path, start + i, why)
+    return out
+
+
+def read_exact_lines(
+    fh: IO[str], n: int, path: Path, start: int, what: str
+) -> Iterator[tuple[list[str], int]]:
+    """Yield ``(chunk, first_line_number)`` holding exactly ``n`` non-blank lines in all.
+
+    Raises
+    ------
+    OctolgpError
+        If the file ends first (message: ``what path:line: truncated``).
+    """
+    found = 0
+    line_no = start
+    while found < n:
+        chunk = list(itertools.islice(fh, min(n - found, CHUNK_LINES)))
+        if not chunk:
+            raise OctolgpError(
+                f"{what} {path}:{line_no}: truncated: expected {n} data lines, found {found}"
+            )
+        yield chunk, line_no
+        found += sum(1 for line in chunk if line.strip())
+        line_no += len(chunk)
+
+
+class CloudReader:
+    """Base of the point-cloud readers: a one-pass iterator of :class:`~octolgp.scan.Scan`.
+
+    Parameters
+    ----------
+    path : str or Path
+        The file or directory to read.
+    skip_bad : bool
+        Skip and count malformed lines, records and scans instead of raising.
+    max_range : float, optional
+        Passed to every :class:`~octolgp.scan.Scan` (metres; a beam at least this long is a
+        no-return); ``None`` when the cloud holds hits only.
+
+    Attributes
+    ----------
+    skipped : int
+        Malformed lines, binary records and whole scans skipped so far (``skip_bad=True``).
+    bad_lines : list of (Path, int)
+        The skipped lines and records: 1-based line number in text data, 0-based point index in
+        binary data.
+    bad_scans : list of str
+        One message per skipped whole scan (bad header, truncated data, no points...).
+    """
+
+    kind: ClassVar[str] = "point cloud"
+
+    def __init__(self, path: str | Path, *, skip_bad: bool, max_range: float | None) -> None:
+        self.path = Path(path)
+        if not self.path.exists():
+            raise MapFileNotFound(f"{self.kind} {str(self.path)!r} does not exist")
+        if max_range is not None and (
+            isinstance(max_range, bool)
+            or not isinstance(max_range, int | float | np.floating | np.integer)
+            or not (math.isfinite(max_range) and max_range > 0)
+        ):
+            raise OctolgpError(
+                f"{type(self).__name__}.max_range must be finite and > 0, got {max_range!r}"
+            )
+        self.max_range = None if max_range is None else float(max_range)
+        self.skip_bad = skip_bad
+        self.skipped = 0
+        self.bad_lines: list[tuple[Path, int]] = []
+        self.bad_scans: list[str] = []
+        self._scans = self._generate()
+
+    def __iter__(self) -> CloudReader:
+        return self
+
+    def __next__(self) -> Scan:
+        return next(self._scans)
+
+    def close(self) -> None:
+        """Close the file being read."""
+        self._scans.close()
+
+    def _generate(self) -> Generator[Scan, None, None]:  # pragma: no cover - abstract
+        raise NotImplementedError
+        yield
+
+    def bad_line(self, path: Path, where: int, why: str, unit: str = "") -> None:
+        """Raise, or count and skip (``skip_bad``), a malformed line or record at ``where``."""
+        if not self.skip_bad:
+            raise OctolgpError(f"{self.kind} {path}:{unit}{where}: {why}")
+        self.skipped += 1
+        self.bad_lines.append((path, where))
+
+    def bad_scan(self, exc: OctolgpError) -> None:
+        """Raise, or count and skip (``skip_bad``), a whole malformed scan."""
+        if not self.skip_bad:
+            raise exc
+        self.skipped += 1
+        self.bad_scans.append(str(exc))
+
+    def make_scan(
+        self,
+        path: Path,
+        where: str,
+        origin: FloatArray,
+        blocks: list[FloatArray],
+        rotation: FloatArray | None = None,
+    ) -> Scan:
+        """Join point blocks into a scan; with ``rotation``, they are in the sensor frame.
+
+        Sensor-frame points become ``rotation @ p + origin``; without ``rotation`` the points
+        are already in the world frame.
+
+        Raises
+        ------
+        OctolgpError
+            If there is no point (``path: where: no points``).
+        """
+        points = np.concatenate(blocks) if blocks else np.empty((0, 3))
+        if not points.shape[0]:
+            raise OctolgpError(f"{self.kind} {path}{where}: no points")
+        if rotation is not None:
+            if not np.array_equal(rotation, np.eye(3)):
+                points = points @ rotation.T
+            if origin.any():
+                points = points + origin
+        return Scan(origin=origin.copy(), points=points, max_range=self.max_range)
