@@ -40,11 +40,16 @@ def build_map(
     method : {"lgp", "gp", "mgp", "ogm"}
         ``"lgp"`` the paper's overlapping local GPs; ``"gp"`` one global GP;
         ``"mgp"`` a mixture of GP experts; ``"ogm"`` a log-odds occupancy grid.
-    scheduler : None
-        Only in-process builds are supported in this version; a non-``None``
-        value raises.
+    scheduler : None, "local", str or distributed.Client
+        ``None``: build in this process. Otherwise ``"lgp"`` runs as the tiled build
+        (:func:`octolgp.tiled.build_tiled`): the octree leaves (coarse boxes with
+        overlap halos) are fitted as tasks on ``dask.distributed`` — ``"local"`` an
+        embedded ``LocalCluster``, an address such as ``"tcp://host:8786"`` an
+        existing cluster, or a ``Client`` — and the result is an
+        :class:`~octolgp.online.OnlineMap` holding the voxel values (the same map as
+        ``build_tiled(scans, config)`` in this process, bit for bit).
     n_jobs : int
-        Threads over clusters for ``"lgp"``.
+        Threads over clusters for ``"lgp"`` (over leaves for the tiled build).
 
     Returns
     -------
@@ -61,7 +66,11 @@ def build_map(
     if method not in METHODS:
         raise OctolgpError(f"method must be one of {', '.join(METHODS)}, got {method!r}")
     if scheduler is not None:
-        raise OctolgpError("scheduler: distributed builds are not available in this version")
+        if method != "lgp":
+            raise OctolgpError(f"scheduler: only method 'lgp' runs on Dask, got {method!r}")
+        from octolgp.tiled import build_tiled
+
+        return build_tiled(scans, config, scheduler=scheduler, n_jobs=n_jobs)
     scan_list = check_scans(scans, config.dim)
     if method == "ogm":
         from octolgp.baselines.ogm import build_ogm

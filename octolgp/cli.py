@@ -1,4 +1,4 @@
-"""Command line: ``octolgp simulate | run | replay | query | export | bench | eval``.
+"""Command line: ``octolgp simulate | run | build | replay | query | export | bench | eval``.
 
 The CLI is the only place that exits. A user error prints one line on stderr and
 exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
@@ -19,6 +19,7 @@ from octolgp.errors import OctolgpError
 EXAMPLES = """examples:
   octolgp simulate paper2d --out paper2d.npz --seed 0
   octolgp run data/intel_lab/intel-corrected.log.gz --out intel.octolgp --rerun-save intel.rrd
+  octolgp build data/intel_lab/intel-corrected.log.gz --out intel.octolgp --scheduler local
   octolgp replay intel.rrd --out intel2.octolgp
   octolgp query intel.octolgp --points pts.npy --out prob.npy
   octolgp export intel.octolgp --out intel.bt
@@ -53,6 +54,48 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     print(table)
     (out / "table2.txt").write_text(table + "\n")
     print(f"\nwrote {out}/table2.txt, fig3_maps.png, fig4_roc.png, fig2_1d.png")
+    return 0
+
+
+def _cmd_build(args: argparse.Namespace) -> int:
+    import itertools
+    import os
+
+    from octolgp.config import MapConfig, OnlineConfig
+    from octolgp.tiled import build_tiled
+
+    out = Path(args.out)
+    if out.exists() and not args.overwrite:
+        raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
+    first, scans = _first_and_rest(args.scans, args.format, args.skip_bad)
+    scan_list = list(itertools.islice(scans, args.limit))
+    if args.downsample is not None:
+        scan_list = [s.downsample(args.downsample) for s in scan_list]
+    config = MapConfig(
+        dim=first.dim,
+        resolution=args.resolution,
+        online=OnlineConfig(learn_scans=args.learn_scans),
+        memory_budget_mb=args.memory_budget,
+    )
+    scheduler = args.scheduler
+    if not args.quiet:
+        where = "this process" if scheduler is None else f"Dask ({scheduler})"
+        print(f"building {len(scan_list)} scans in {where} ...", file=sys.stderr, flush=True)
+    # build beside the target and rename at the end: a killed build leaves no half map
+    partial = out.with_name(out.name + ".partial")
+    partial.unlink(missing_ok=True)
+    m = build_tiled(
+        scan_list, config, path=partial, scheduler=scheduler, workers=args.workers, n_jobs=args.jobs
+    )
+    stats = m.build_stats
+    m.close()
+    os.replace(partial, out)
+    print(
+        f"wrote {out}: {len(scan_list)} scans, {int(stats['items'])} training items, "
+        f"{int(stats['leaves'])} leaves, {int(stats['voxels'])} voxels in "
+        f"{stats['training'] + stats['assign'] + stats['fit'] + stats['store']:.1f} s "
+        f"(fit {stats['fit']:.1f} s)"
+    )
     return 0
 
 
@@ -405,6 +448,44 @@ def make_parser() -> argparse.ArgumentParser:
     bench.add_argument("--repeats", type=int, default=5, help="timing runs per method")
     bench.add_argument("--seeds", type=int, default=5, help="simulated data sets for the AUC")
     bench.set_defaults(func=_cmd_bench)
+
+    bld = sub.add_parser(
+        "build",
+        help="batch-build a map file from a whole log, each leaf fitted once",
+        description=(
+            "Build the map of a whole log in one step: every octree leaf is fitted once, "
+            "on --jobs threads here or as tasks on a dask.distributed cluster "
+            "(--scheduler local for an embedded LocalCluster, or tcp://HOST:PORT)."
+        ),
+    )
+    bld.add_argument("scans", help="scan log, any format run reads")
+    bld.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
+    bld.add_argument("--format", default=None, help="scan log format (default: guessed)")
+    bld.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    bld.add_argument("--jobs", type=_positive_int, default=1, help="threads fitting leaves")
+    bld.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="'local' (embedded LocalCluster) or a dask scheduler address tcp://HOST:PORT",
+    )
+    bld.add_argument(
+        "--workers", type=_positive_int, default=None, help="LocalCluster worker processes"
+    )
+    bld.add_argument(
+        "--learn-scans", type=_positive_int, default=10, help="scans to learn hyperparameters on"
+    )
+    bld.add_argument("--downsample", type=_positive_float, default=None, metavar="VOXEL")
+    bld.add_argument("--limit", type=_positive_int, default=None, help="use the first N scans")
+    bld.add_argument(
+        "--memory-budget", type=_positive_float, default=None, metavar="MB", help="RAM for leaves"
+    )
+    bld.add_argument(
+        "--skip-bad", action="store_true", help="skip malformed lines/messages and count them"
+    )
+    bld.add_argument("--overwrite", action="store_true", help="replace an existing --out")
+    bld.add_argument("--quiet", action="store_true", help="no progress messages")
+    bld.set_defaults(func=_cmd_build)
 
     ev = sub.add_parser(
         "eval",

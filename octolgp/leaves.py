@@ -16,6 +16,7 @@ Everything here is a pure function of the training data and the grid.
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -112,11 +113,7 @@ class LeafGrid:
     def voxel_centres(self, index: IntArray) -> FloatArray:
         """Centres of one leaf's voxels, shape (side**d, d), in flat order (x fastest)."""
         lo, _ = self.box(np.asarray(index).reshape(1, -1))
-        steps = (np.arange(self.side) + 0.5) * self.resolution
-        grids = np.meshgrid(*([steps] * self.dim), indexing="ij")
-        # flat index = x + side * y (+ side² z): x varies fastest
-        offsets = np.stack([g.ravel(order="F") for g in grids], axis=1)
-        return np.asarray(lo[0] + offsets, dtype=np.float64)
+        return np.asarray(lo[0] + _centre_offsets(self.dim, self.side, self.resolution))
 
     def voxel_index(self, points: FloatArray, index: IntArray) -> IntArray:
         """Flat index of each point's voxel within the leaf ``index`` (points inside it)."""
@@ -130,6 +127,17 @@ class LeafGrid:
     def pack(self, index: IntArray) -> IntArray:
         """Packed leaf keys of leaf indices (k, d)."""
         return pack_keys(index)
+
+
+@functools.lru_cache(maxsize=8)
+def _centre_offsets(dim: int, side: int, resolution: float) -> FloatArray:
+    """Voxel centres of a leaf relative to its lower corner, (side**dim, dim), x fastest."""
+    steps = (np.arange(side) + 0.5) * resolution
+    grids = np.meshgrid(*([steps] * dim), indexing="ij")
+    # flat index = x + side * y (+ side² z): x varies fastest
+    offsets = np.stack([g.ravel(order="F") for g in grids], axis=1)
+    offsets.setflags(write=False)
+    return offsets
 
 
 def _valid_leaves(grid: LeafGrid, index: IntArray) -> NDArray[np.bool_]:
@@ -205,10 +213,24 @@ def assign_segments(
     # traverse_voxels stops before the end's leaf: add it
     seg = np.concatenate([seg, np.arange(start.shape[0], dtype=np.int64)])
     cells = np.concatenate([keys, grid.leaf_of(end)])
-    # the 3^d neighbourhood of every crossed leaf
+    # Which neighbours of a crossed leaf can the segment reach? Only those whose halo the
+    # segment's piece inside the crossed leaf comes within ``halo * edge`` of: per axis,
+    # the lower neighbour when the piece gets that close to the lower face, the upper
+    # one likewise. This keeps ~1-3 of the 3^d candidates per crossed leaf.
+    lo, hi = grid.box(cells)
+    a, b, inside = _clip_to_box(start[seg], end[seg], lo, hi)
+    margin = grid.halo * grid.edge * (1.0 + 1e-9) + 1e-12
+    near_lo = (np.minimum(a, b) - lo <= margin) | ~inside[:, None]
+    near_hi = (hi - np.maximum(a, b) <= margin) | ~inside[:, None]
     neighbours = np.array(list(itertools.product((-1, 0, 1), repeat=d)), dtype=np.int64)
-    seg = np.repeat(seg, neighbours.shape[0])
-    cells = (cells[:, None, :] + neighbours[None, :, :]).reshape(-1, d)
+    reach = np.ones((seg.size, neighbours.shape[0]), dtype=bool)
+    for axis in range(d):  # one iteration per axis
+        off = neighbours[:, axis]
+        reach &= np.where(off < 0, near_lo[:, axis : axis + 1], True)
+        reach &= np.where(off > 0, near_hi[:, axis : axis + 1], True)
+    pair, which = np.nonzero(reach)
+    seg = seg[pair]
+    cells = cells[pair] + neighbours[which]
     ok = _valid_leaves(grid, cells)
     seg, cells = seg[ok], cells[ok]
     # unique (segment, leaf) pairs

@@ -150,6 +150,48 @@ def predict_leaf(
     return LocalGPMap(config, hp, clusters=clusters, gps=gps)._latent_nearest(centres)
 
 
+def fit_leaf(leaf: Leaf, config: MapConfig, hp: Hyperparameters) -> Leaf:
+    """Fit a leaf on its evidence and return it with fresh voxel values (a pure function).
+
+    The voxel centres follow from ``leaf.index`` and the leaf grid of ``config``; the
+    latent mean and variance are predicted there (:func:`predict_leaf`) and PLSC gives
+    P(occupied). A leaf whose voxels are all below ``prune_free`` or all above
+    ``prune_occupied`` keeps one value, the least confident one, so a pruned leaf never
+    overstates. Used by the map's threads and, unchanged, by Dask workers
+    (:mod:`octolgp.tiled`).
+
+    Parameters
+    ----------
+    leaf : Leaf
+        Evidence of one leaf (its value arrays are ignored).
+    config : MapConfig
+    hp : Hyperparameters
+
+    Returns
+    -------
+    Leaf
+        A copy with ``mean``, ``var`` (float32, latent) and ``prob``, ``pruned`` set and
+        ``refits`` incremented.
+    """
+    oc = config.online
+    centres = LeafGrid.from_config(config).voxel_centres(leaf.index)
+    mean, var = predict_leaf(leaf, centres, config, hp)
+    prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+    pruned = False
+    if oc.prune and (prob.max() < oc.prune_free or prob.min() > oc.prune_occupied):
+        at = int(np.argmax(prob) if prob.max() < oc.prune_free else np.argmin(prob))
+        mean, var, prob = mean[at : at + 1], var[at : at + 1], prob[at : at + 1]
+        pruned = True
+    return dataclasses.replace(
+        leaf,
+        mean=mean.astype(np.float32),
+        var=var.astype(np.float32),
+        prob=prob.astype(np.float32),
+        pruned=pruned,
+        refits=leaf.refits + 1,
+    )
+
+
 class NullSink:
     """Where map events go when nothing listens: every method does nothing.
 
@@ -232,10 +274,8 @@ class OnlineMap:
         self.n_scans = 0
         self._buffer: list[Scan] = []
         self._pool: ThreadPoolExecutor | None = None
-        zero = np.zeros((1, config.dim), dtype=np.int64)
-        # voxel centres relative to a leaf's low corner, flat voxel order
-        self._centre_offsets = self.grid.voxel_centres(zero[0]) - self.grid.box(zero)[0]
         self._file: Any = None
+        self.build_stats: dict[str, float] = {}
         if recording is not None:
             from octolgp.viz.stream import RerunSink
 
@@ -500,35 +540,14 @@ class OnlineMap:
         """Refit and re-predict leaves (threads over leaves); returns new leaves and pruned count."""
         hp = self.hyperparameters
         assert hp is not None
-        config = self.config
-        oc = config.online
-
-        def fit(leaf: Leaf) -> Leaf:
-            centres = self.voxel_centres(leaf)
-            mean, var = predict_leaf(leaf, centres, config, hp)
-            prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
-            pruned = False
-            if oc.prune and (prob.max() < oc.prune_free or prob.min() > oc.prune_occupied):
-                # keep the least confident voxel: a pruned leaf never overstates
-                at = int(np.argmax(prob) if prob.max() < oc.prune_free else np.argmin(prob))
-                mean, var, prob = mean[at : at + 1], var[at : at + 1], prob[at : at + 1]
-                pruned = True
-            return dataclasses.replace(
-                leaf,
-                mean=mean.astype(np.float32),
-                var=var.astype(np.float32),
-                prob=prob.astype(np.float32),
-                pruned=pruned,
-                refits=leaf.refits + 1,
-            )
-
-        if oc.n_jobs > 1 and len(leaves) > 1:
+        n_jobs = self.config.online.n_jobs
+        if n_jobs > 1 and len(leaves) > 1:
             if self._pool is None:
-                self._pool = ThreadPoolExecutor(max_workers=oc.n_jobs)
+                self._pool = ThreadPoolExecutor(max_workers=n_jobs)
             with _blas_controller().limit(limits=1):
-                out = list(self._pool.map(fit, leaves))
+                out = list(self._pool.map(lambda leaf: fit_leaf(leaf, self.config, hp), leaves))
         else:
-            out = [fit(leaf) for leaf in leaves]
+            out = [fit_leaf(leaf, self.config, hp) for leaf in leaves]
         return out, sum(leaf.pruned for leaf in out)
 
     # ------------------------------------------------------------------ queries
@@ -648,7 +667,7 @@ class OnlineMap:
 
     def voxel_centres(self, leaf: Leaf) -> FloatArray:
         """Centres of a leaf's voxels, shape (V, d), in the order of its value arrays."""
-        return self._centre_offsets + self.grid.box(leaf.index[None, :])[0]
+        return self.grid.voxel_centres(leaf.index)
 
     def leaves(self) -> Iterator[tuple[int, Leaf]]:
         """``(packed leaf key, leaf)`` for every leaf, in key order."""

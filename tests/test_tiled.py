@@ -1,0 +1,134 @@
+"""Whole-log tiled builds: local threads, a 2-worker Dask LocalCluster, and the CLI."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from octolgp import MapConfig, OctolgpError, OnlineMap, build_map, learn_hyperparameters
+from octolgp.cli import main
+from octolgp.io import load_scans
+from octolgp.tiled import build_tiled
+
+INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
+
+
+@pytest.fixture(scope="module")
+def scans() -> list:
+    return list(load_scans(INTEL20))
+
+
+@pytest.fixture(scope="module")
+def config(scans: list) -> MapConfig:
+    cfg = MapConfig(dim=2, resolution=0.2)
+    return dataclasses.replace(cfg, hyperparameters=learn_hyperparameters(scans[:10], cfg))
+
+
+def _assert_same_map(a: OnlineMap, b: OnlineMap) -> None:
+    keys_a = [k for k, _ in a.leaves()]
+    keys_b = [k for k, _ in b.leaves()]
+    assert keys_a == keys_b
+    for k in keys_a:
+        la, lb = a.store.get(k), b.store.get(k)
+        assert la is not None
+        assert lb is not None
+        for name in ("mean", "var", "prob"):
+            assert np.array_equal(getattr(la, name), getattr(lb, name)), (k, name)
+        assert la.pruned == lb.pruned
+
+
+@pytest.fixture(scope="module")
+def local(scans: list, config: MapConfig) -> OnlineMap:
+    return build_tiled(scans, config)
+
+
+def test_tiled_build_equals_the_online_map_of_the_same_scans(
+    scans: list, config: MapConfig, local: OnlineMap
+) -> None:
+    online = OnlineMap(config)
+    online.insert_scans(scans)
+    _assert_same_map(local, online)
+    assert local.n_scans == online.n_scans == len(scans)
+    stats = local.build_stats
+    assert stats["leaves"] == len(local.store)
+    assert stats["items"] > 0
+
+
+def test_threads_give_the_same_map(scans: list, config: MapConfig, local: OnlineMap) -> None:
+    _assert_same_map(local, build_tiled(scans, config, n_jobs=2, task_items=500))
+
+
+def test_two_worker_dask_cluster_gives_the_same_map(
+    scans: list, config: MapConfig, local: OnlineMap
+) -> None:
+    distributed = pytest.importorskip("distributed")
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        remote = build_map(scans, config, scheduler=client)
+        assert isinstance(remote, OnlineMap)
+        _assert_same_map(local, remote)
+        # the work really ran on both workers, in many small tasks
+        assert len(client.scheduler_info()["workers"]) == 2
+        tiny = build_tiled(scans, config, scheduler=client, task_items=200)
+        _assert_same_map(local, tiny)
+
+
+def test_tiled_map_is_a_normal_map_that_takes_more_scans(
+    scans: list, config: MapConfig, tmp_path: Path
+) -> None:
+    path = tmp_path / "m.octolgp"
+    m = build_tiled(scans[:12], config, path=path)
+    m.close()
+    with OnlineMap.open(path) as reopened:
+        assert reopened.n_scans == 12
+        reopened.insert_scans(scans[12:])
+        whole = build_tiled(scans, config)
+        _assert_same_map(reopened, whole)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"scheduler": 42}, "scheduler"),
+        ({"n_jobs": 0}, "n_jobs"),
+        ({"task_items": 0}, "task_items"),
+    ],
+)
+def test_bad_build_arguments_are_refused(
+    scans: list, config: MapConfig, kwargs: dict, field: str
+) -> None:
+    with pytest.raises(OctolgpError, match=field):
+        build_tiled(scans, config, **kwargs)
+
+
+def test_scheduler_needs_the_lgp_method_and_scans(scans: list, config: MapConfig) -> None:
+    with pytest.raises(OctolgpError, match="only method 'lgp'"):
+        build_map(scans, config, method="ogm", scheduler="local")
+    with pytest.raises(OctolgpError, match="scans is empty"):
+        build_tiled([], config)
+
+
+def test_cli_build_writes_the_map_and_refuses_to_overwrite(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "b.octolgp"
+    argv = ["build", str(INTEL20), "--out", str(out), "--resolution", "0.2", "--quiet"]
+    assert main([*argv, "--learn-scans", "10", "--jobs", "2"]) == 0
+    assert "wrote" in capsys.readouterr().out
+    assert not (tmp_path / "b.octolgp.partial").exists()
+    run_out = tmp_path / "r.octolgp"
+    run = ["run", str(INTEL20), "--out", str(run_out), "--resolution", "0.2", "--quiet"]
+    assert main(run) == 0
+    with OnlineMap.open(out) as built, OnlineMap.open(run_out) as ran:
+        _assert_same_map(built, ran)
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "already exists" in err[0]
