@@ -240,16 +240,23 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
     try:
         with m:
             bar = tqdm(scans, unit="scan", disable=args.quiet or None, dynamic_ncols=True)
+            repaired = 0
             for scan in bar:  # one iteration per scan
                 update = m.insert_scan(scan)
+                repaired += update.repaired
                 bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
-            m.flush()
+            last = m.flush()
+            repaired += 0 if last is None else last.repaired
             n_leaves, n_scans = len(m.store), m.n_scans
     finally:
         if rec is not None:
             rec.flush()
             rec.disconnect()
     print(f"wrote {out}: {n_scans} scans, {n_leaves} leaves, hyperparameters {m.hyperparameters}")
+    if repaired:
+        print(
+            f"note: {repaired} leaf kernel matrices were not positive definite; repaired by jitter"
+        )
     return 0
 
 

@@ -168,12 +168,16 @@ class LearningConfig:
         jointly by the LOO predictive probability, starting from that point. It
         helped on the paper's simulation (AUC +0.002) but hurt on a noise-free room
         (signal variance ran to its bound), so it is opt-in.
+    balance_classes : bool
+        Fit PLSC's α, β with occupied and free items weighted equally
+        (:func:`octolgp.plsc.fit_plsc`).
     """
 
     max_clusters: int = 8
     max_items_per_cluster: int = 300
     seed: int = 0
     objective: str = "lml"
+    balance_classes: bool = False
 
     def __post_init__(self) -> None:
         if self.objective not in ("lml+loo", "lml"):

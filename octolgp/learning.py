@@ -135,7 +135,12 @@ def learn_from_clusters(
         mus.append(mu)
         vs.append(var)
         ys.append(y)
-    alpha, beta = fit_plsc(np.concatenate(mus), np.concatenate(vs), np.concatenate(ys))
+    alpha, beta = fit_plsc(
+        np.concatenate(mus),
+        np.concatenate(vs),
+        np.concatenate(ys),
+        balanced=config.learning.balance_classes,
+    )
     hp = Hyperparameters(ell, sf2, sn2, alpha, beta)
     if config.learning.objective == "lml+loo":
         hp = refine_by_loo(sets, hp)

@@ -6,6 +6,7 @@ Learning* (2006), Algorithm 2.1; leave-one-out follows §5.4.2, eq. (5.12).
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -51,16 +52,53 @@ class LocalGP:
     hp: Hyperparameters
 
 
+JITTER_STEPS = (1e-10, 1e-8, 1e-6, 1e-4, 1e-2)
+"""Relative jitters (times the mean diagonal) tried, in order, on a matrix that is not
+numerically positive definite (coincident items, a tiny noise variance)."""
+
+_repairs = 0
+_repairs_lock = threading.Lock()
+
+
+def jitter_repairs() -> int:
+    """How many kernel matrices this process has repaired by jitter so far.
+
+    A map reads it before and after a fit to report the repairs of that step
+    (:attr:`octolgp.online.ScanUpdate.repaired`).
+    """
+    return _repairs
+
+
 def _cholesky(K: FloatArray) -> FloatArray:
-    """Lower Cholesky factor with a hint on failure (R&W Alg. 2.1 line 2)."""
+    """Lower Cholesky factor (R&W Alg. 2.1 line 2), repaired by jitter when needed.
+
+    A matrix that is not numerically positive definite — coincident training items
+    with a tiny noise variance, say — gets the smallest of :data:`JITTER_STEPS` (times
+    its mean diagonal) added to its diagonal that makes it factor; each such repair
+    is counted (:func:`jitter_repairs`). Only a matrix that no jitter repairs (NaN, a
+    negative diagonal) raises.
+    """
     try:
         L, _ = cho_factor(K, lower=True, check_finite=False)
-    except LinAlgError as exc:
-        raise OctolgpError(
-            f"kernel matrix is not positive definite ({exc}); raise "
-            "Hyperparameters.noise_variance or deduplicate the training data"
-        ) from None
-    return np.tril(L)
+        return np.tril(L)
+    except LinAlgError:
+        pass
+    scale = float(np.mean(np.diag(K))) if K.size else 1.0
+    if np.isfinite(scale) and scale > 0:
+        eye = np.eye(K.shape[0])
+        for rel in JITTER_STEPS:  # at most five tries
+            try:
+                L, _ = cho_factor(K + (rel * scale) * eye, lower=True, check_finite=False)
+            except LinAlgError:
+                continue
+            global _repairs
+            with _repairs_lock:
+                _repairs += 1
+            return np.tril(L)
+    raise OctolgpError(
+        "kernel matrix is not positive definite even with jitter; raise "
+        "Hyperparameters.noise_variance or deduplicate the training data"
+    )
 
 
 def _factor(

@@ -52,7 +52,7 @@ from octolgp.keys import addressable_mask, addressable_range
 from octolgp.learning import learn_hyperparameters
 from octolgp.leaves import LeafGrid, assign_points, assign_segments
 from octolgp.lgp import LocalGPMap, fit_clusters
-from octolgp.local_gp import fit_predict
+from octolgp.local_gp import fit_predict, jitter_repairs
 from octolgp.partition import partition
 from octolgp.plsc import occupancy_probability
 from octolgp.scan import FloatArray, Scan, as_points
@@ -98,6 +98,11 @@ class ScanUpdate:
         Leaves in the map after the call.
     memory_bytes : int
         Bytes held by the leaves after the call.
+    repaired : int
+        Kernel matrices that were not numerically positive definite (coincident
+        items, tiny noise) and were repaired by jitter during this step
+        (:func:`octolgp.local_gp.jitter_repairs`; a process-wide count, so concurrent
+        maps in one process share it).
     """
 
     scan: int
@@ -110,6 +115,7 @@ class ScanUpdate:
     buffered: bool = False
     n_leaves: int = 0
     memory_bytes: int = 0
+    repaired: int = 0
 
 
 def predict_leaf(
@@ -468,7 +474,9 @@ class OnlineMap:
 
             t = time.perf_counter()
             keys = [k for k, _ in changed]
+            repairs = jitter_repairs()
             fitted, pruned = self._fit([leaf for _, leaf in changed])
+            repairs = jitter_repairs() - repairs
             stages["fit"] = time.perf_counter() - t
 
         t = time.perf_counter()
@@ -492,6 +500,7 @@ class OnlineMap:
             stages=stages,
             n_leaves=len(self.store),
             memory_bytes=self.memory_bytes(),
+            repaired=repairs,
         )
         self.sink.on_update(self, update, keys)
         return update

@@ -34,21 +34,26 @@ def occupancy_probability(
 
 
 def _neg_loo_log_prob(
-    params: FloatArray, mu: FloatArray, var: FloatArray, y: FloatArray
+    params: FloatArray, mu: FloatArray, var: FloatArray, y: FloatArray, w: FloatArray | None = None
 ) -> tuple[float, FloatArray]:
-    """−Σ log Φ(y_i z_i) and its gradient in (α, β)."""
+    """−Σ w_i log Φ(y_i z_i) and its gradient in (α, β) (``w`` of ones by default)."""
     alpha, beta = params
     s = np.sqrt(1.0 + alpha * alpha * var)
     z = y * (alpha * mu + beta) / s
     logp = log_ndtr(z)
     ratio = np.exp(-0.5 * z * z - 0.5 * np.log(2.0 * np.pi) - logp)  # φ(z) / Φ(z)
+    if w is not None:
+        logp = w * logp
+        ratio = w * ratio
     dz_dalpha = y * (mu / s - (alpha * mu + beta) * alpha * var / s**3)
     dz_dbeta = y / s
     grad = -np.array([(ratio * dz_dalpha).sum(), (ratio * dz_dbeta).sum()])
     return -float(logp.sum()), grad
 
 
-def fit_plsc(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, float]:
+def fit_plsc(
+    mu: FloatArray, var: FloatArray, y: FloatArray, balanced: bool = False
+) -> tuple[float, float]:
     """Fit α, β by maximising the LOO predictive log probability.
 
     Parameters
@@ -57,16 +62,25 @@ def fit_plsc(mu: FloatArray, var: FloatArray, y: FloatArray) -> tuple[float, flo
         Leave-one-out predictive means and variances.
     y : ndarray of shape (n,)
         Labels in {−1, +1}.
+    balanced : bool
+        Weight each class's items by ``n / (2 n_class)`` so that occupied and free
+        count equally however many items each has (free segments usually outnumber
+        hits several times; unweighted, the rarer hits pull β towards "occupied").
 
     Returns
     -------
     alpha, beta : float
     """
     n = max(y.shape[0], 1)
+    w = None
+    if balanced:
+        n_pos = max(int(np.count_nonzero(y > 0)), 1)
+        n_neg = max(int(np.count_nonzero(y < 0)), 1)
+        w = np.where(y > 0, n / (2.0 * n_pos), n / (2.0 * n_neg))
 
     def mean_objective(params: FloatArray) -> tuple[float, FloatArray]:
         # the per-item mean keeps L-BFGS-B's first step sane for any n
-        value, grad = _neg_loo_log_prob(params, mu, var, y)
+        value, grad = _neg_loo_log_prob(params, mu, var, y, w)
         return value / n, grad / n
 
     res = minimize(

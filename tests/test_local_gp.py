@@ -227,15 +227,20 @@ def test_loo_log_predictive_value_and_gradient(params: np.ndarray, d: int) -> No
 # --------------------------------------------------------------------------- failure
 
 
-def test_not_positive_definite_raises_with_hint() -> None:
+def test_not_positive_definite_is_repaired_in_fits_and_minus_inf_in_the_likelihood() -> None:
     """Coincident hits with a negligible noise give a singular ``K + σn² I``."""
+    from octolgp.local_gp import _cholesky
+
     X = np.zeros((2, 2))
     y = np.ones(2)
     hp = Hyperparameters(length_scale=1.0, signal_variance=1.0, noise_variance=1e-300)
+    gp = fit_local_gp(points_set(X), y, hp)  # repaired by jitter (see the test below)
+    assert np.isfinite(gp.weights).all()
+    # a matrix no jitter can repair raises, with the hint
     with pytest.raises(OctolgpError, match=r"not positive definite.*noise_variance"):
-        fit_local_gp(points_set(X), y, hp)
-    with pytest.raises(OctolgpError, match="noise_variance"):
-        loo_predictions(points_set(X), y, hp)
+        _cholesky(-np.eye(3))
+    mu, _var = loo_predictions(points_set(X), y, hp)  # repaired there too
+    assert np.isfinite(mu).all()
     value, grad = log_marginal_likelihood(points_set(X), y, np.log([1.0, 1.0, 1e-300]))
     assert value == -np.inf
     np.testing.assert_array_equal(grad, 0.0)
@@ -251,3 +256,33 @@ def test_same_coincident_hits_fit_with_ordinary_noise() -> None:
     mean, _ = predict_latent(gp, np.zeros((1, 2)))
     # two observations of +1 at one place: mean 2σf² / (2σf² + σn²)
     assert mean[0] == pytest.approx(2.0 / 2.1, rel=1e-12)
+
+
+def test_non_positive_definite_kernel_is_repaired_by_jitter_and_counted() -> None:
+    from octolgp.kernels import quadrature_set
+    from octolgp.local_gp import fit_local_gp, jitter_repairs
+
+    # coincident hits and no noise: K is singular (rank 1) before jitter
+    pts = np.tile([[1.0, 2.0]], (6, 1))
+    items = quadrature_set(pts, np.zeros((0, 2)), np.zeros((0, 2)), 0.1)
+    hp = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)
+    before = jitter_repairs()
+    gp = fit_local_gp(items, np.ones(6), hp)
+    assert jitter_repairs() == before + 1
+    assert np.isfinite(gp.weights).all()
+    # the factor is of K plus a small jitter only
+    K = np.ones((6, 6))
+    np.testing.assert_allclose(gp.L @ gp.L.T, K, atol=1e-3)
+
+
+def test_online_map_reports_repaired_leaves() -> None:
+    from octolgp import MapConfig, OnlineMap, Scan
+
+    # two hits 2e-12 m apart on either side of a voxel border: both kept (one per
+    # voxel), nearly coincident, so with no noise the leaf's kernel matrix is singular
+    hp = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)
+    m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp))
+    pts = np.array([[1.0 - 1e-12, 0.05], [1.0 + 1e-12, 0.05], [1.0, 0.35]])
+    update = m.insert_scan(Scan(np.zeros(2), pts))
+    assert update.repaired >= 1
+    assert np.isfinite(m.voxels()[1]).all()
