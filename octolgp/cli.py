@@ -131,6 +131,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         n_jobs=args.jobs,
         downsample=args.downsample,
         progress=progress,
+        fast_online=args.fast_online,
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -180,13 +181,19 @@ def _recording(args: argparse.Namespace) -> Any:
     import rerun as rr
 
     rec = rr.RecordingStream("octolgp")
-    if args.rerun_save:
-        rec.save(args.rerun_save)
-    elif args.rerun_connect:
-        rec.connect_grpc(args.rerun_connect)
-    else:
-        url = rec.serve_grpc()
-        print(f"serving the recording at {url} (open it with: rerun --connect {url})")
+    try:
+        if args.rerun_save:
+            where = f"--rerun-save {args.rerun_save!r}"
+            rec.save(args.rerun_save)
+        elif args.rerun_connect:
+            where = f"--rerun-connect {args.rerun_connect!r}"
+            rec.connect_grpc(args.rerun_connect)
+        else:
+            where = "--rerun-serve"
+            url = rec.serve_grpc()
+            print(f"serving the recording at {url} (open it with: rerun --connect {url})")
+    except (RuntimeError, ValueError, TypeError) as exc:  # how rerun reports a bad path or URL
+        raise OctolgpError(f"{where}: {exc}") from None
     return rec
 
 
@@ -344,6 +351,20 @@ def _positive_int(text: str) -> int:
     return value
 
 
+def _nonnegative_int(text: str) -> int:
+    value = int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def _probability(text: str) -> float:
+    value = float(text)
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be a number in (0, 1), got {text}")
+    return value
+
+
 def _positive_float(text: str) -> float:
     value = float(text)
     if not value > 0 or value == float("inf"):
@@ -357,7 +378,7 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
     p.add_argument("--jobs", type=_positive_int, default=1, help="threads refitting leaves")
     p.add_argument(
-        "--learn-scans", type=_positive_int, default=10, help="scans to learn hyperparameters on"
+        "--learn-scans", type=_positive_int, default=40, help="scans to learn hyperparameters on"
     )
     p.add_argument("--limit", type=_positive_int, default=None, help="stop after N scans")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -376,7 +397,9 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
     rr.add_argument("--rerun-save", metavar="REC.rrd", help="stream the mapping to a recording")
     rr.add_argument("--rerun-connect", metavar="URL", help="stream to a viewer (rerun+http://...)")
     rr.add_argument("--rerun-serve", action="store_true", help="serve the stream over gRPC")
-    p.add_argument("--rerun-rays", type=int, default=0, help="log every k-th beam as a ray")
+    p.add_argument(
+        "--rerun-rays", type=_nonnegative_int, default=0, help="log every k-th beam as a ray"
+    )
     p.add_argument("--rerun-uncertainty", action="store_true", help="log the variance layer")
 
 
@@ -403,7 +426,7 @@ def make_parser() -> argparse.ArgumentParser:
     sim = sub.add_parser("simulate", help="write a simulated data set with ground truth")
     sim.add_argument("scene", choices=["paper2d"], help="the paper's 2D simulation")
     sim.add_argument("--out", required=True, help="output .npz scan log")
-    sim.add_argument("--seed", type=int, default=0)
+    sim.add_argument("--seed", type=_nonnegative_int, default=0)
     sim.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser("run", help="map a scan log online, scan by scan")
@@ -444,16 +467,20 @@ def make_parser() -> argparse.ArgumentParser:
     export = sub.add_parser("export", help="export a map file to OctoMap, PLY or PNG")
     export.add_argument("map", help="map file written by run or replay")
     export.add_argument("--out", required=True, help="FILE.bt | FILE.ot | FILE.ply | FILE.png")
-    export.add_argument("--threshold", type=float, default=0.5, help="occupied above this P")
+    export.add_argument(
+        "--threshold", type=_probability, default=0.5, help="occupied above this P, in (0, 1)"
+    )
     export.add_argument("--z", type=float, default=None, help="height of a 3D map's PNG slice")
     export.set_defaults(func=_cmd_export)
 
     bench = sub.add_parser("bench", help="reproduce the paper's Table II, Fig. 2-4")
     bench.add_argument("scene", choices=["paper2d"])
     bench.add_argument("--out", default="bench_out", help="folder for the table and figures")
-    bench.add_argument("--seed", type=int, default=0)
-    bench.add_argument("--repeats", type=int, default=5, help="timing runs per method")
-    bench.add_argument("--seeds", type=int, default=5, help="simulated data sets for the AUC")
+    bench.add_argument("--seed", type=_nonnegative_int, default=0)
+    bench.add_argument("--repeats", type=_positive_int, default=5, help="timing runs per method")
+    bench.add_argument(
+        "--seeds", type=_positive_int, default=5, help="simulated data sets for the AUC"
+    )
     bench.set_defaults(func=_cmd_bench)
 
     bld = sub.add_parser(
@@ -480,7 +507,7 @@ def make_parser() -> argparse.ArgumentParser:
         "--workers", type=_positive_int, default=None, help="LocalCluster worker processes"
     )
     bld.add_argument(
-        "--learn-scans", type=_positive_int, default=10, help="scans to learn hyperparameters on"
+        "--learn-scans", type=_positive_int, default=40, help="scans to learn hyperparameters on"
     )
     bld.add_argument("--downsample", type=_positive_float, default=None, metavar="VOXEL")
     bld.add_argument("--limit", type=_positive_int, default=None, help="use the first N scans")
@@ -523,6 +550,11 @@ def make_parser() -> argparse.ArgumentParser:
     ev.add_argument("--limit", type=_positive_int, default=None, help="use the first N scans")
     ev.add_argument("--jobs", type=_positive_int, default=1, help="threads for the GP methods")
     ev.add_argument("--out", default="eval_out", help="folder for roc.png, results.json")
+    ev.add_argument(
+        "--fast-online",
+        action="store_true",
+        help="build the online map in one step (the same map, bit for bit; not its timing)",
+    )
     ev.add_argument("--quiet", action="store_true", help="no progress messages")
     ev.set_defaults(func=_cmd_eval)
     return parser

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
+from scipy import sparse
 from scipy.spatial.distance import cdist
 
 from octolgp.scan import FloatArray
@@ -182,15 +183,29 @@ def matern32(r: FloatArray, length_scale: float, signal_variance: float) -> Floa
     return a
 
 
+def _weight_matrix(Q: QuadratureSet, rows: slice, lo: int, hi: int) -> sparse.csr_matrix:
+    """Sparse ``W`` (items ``rows`` x nodes ``lo:hi``) holding the quadrature weights."""
+    counts = np.diff(np.append(Q.starts[rows], hi))
+    item = np.repeat(np.arange(counts.size), counts)
+    return sparse.csr_matrix(
+        (Q.weights[lo:hi], (item, np.arange(hi - lo))), shape=(counts.size, hi - lo)
+    )
+
+
 def _aggregate(K: FloatArray, A: QuadratureSet, B: QuadratureSet, rows: slice) -> FloatArray:
-    """Weighted sums of node blocks into item blocks (``Wᵀ K W``) for A's items ``rows``."""
+    """Weighted sums of node blocks into item blocks, ``W_A K W_Bᵀ``, for A's items ``rows``.
+
+    ``W`` is a sparse item-by-node matrix of quadrature weights, so each product is one
+    pass over ``K`` (several times faster than ``np.add.reduceat`` over node runs). Sets
+    of one-node items (points) have ``W = I`` and are skipped.
+    """
     node_lo = int(A.starts[rows.start])
-    K *= A.weights[node_lo : node_lo + K.shape[0], None]
-    K *= B.weights[None, :]
-    if B.n_items != B.n_nodes:
-        K = np.add.reduceat(K, B.starts, axis=1)
     if A.n_items != A.n_nodes:
-        K = np.add.reduceat(K, A.starts[rows] - node_lo, axis=0)
+        W_A = _weight_matrix(A, rows, node_lo, node_lo + K.shape[0])
+        K = np.asarray(W_A @ K)
+    if B.n_items != B.n_nodes:
+        W_B = _weight_matrix(B, slice(0, B.n_items), 0, B.n_nodes)
+        K = np.asarray((W_B @ K.T).T)
     return K
 
 

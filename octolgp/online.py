@@ -550,13 +550,14 @@ class OnlineMap:
         hp = self.hyperparameters
         assert hp is not None
         n_jobs = self.config.online.n_jobs
-        if n_jobs > 1 and len(leaves) > 1:
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(max_workers=n_jobs)
-            with _blas_controller().limit(limits=1):
+        # one BLAS thread per leaf: small matrices, parallelism is over leaves
+        with _blas_controller().limit(limits=1):
+            if n_jobs > 1 and len(leaves) > 1:
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(max_workers=n_jobs)
                 out = list(self._pool.map(lambda leaf: fit_leaf(leaf, self.config, hp), leaves))
-        else:
-            out = [fit_leaf(leaf, self.config, hp) for leaf in leaves]
+            else:
+                out = [fit_leaf(leaf, self.config, hp) for leaf in leaves]
         return out, sum(leaf.pruned for leaf in out)
 
     # ------------------------------------------------------------------ queries

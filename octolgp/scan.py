@@ -44,6 +44,21 @@ def as_points(value: object, name: str, dim: int | None = None) -> FloatArray:
     return out
 
 
+def check_scan_size(scan: Scan, limit: int, field: str = "OnlineConfig.max_scan_points") -> None:
+    """Refuse a scan with more than ``limit`` points, naming the setting that raises it.
+
+    Raises
+    ------
+    OctolgpError
+        If ``len(scan) > limit``.
+    """
+    if len(scan) > limit:
+        raise OctolgpError(
+            f"scan has {len(scan)} points, more than {field} ({limit}): "
+            f"downsample it (Scan.downsample) or raise {field}"
+        )
+
+
 @dataclass(frozen=True, eq=False)
 class Scan:
     """One range scan, in the world frame.

@@ -66,7 +66,7 @@ def test_grid_numbers_equal_the_protocol_done_by_hand(intel20: list, report) -> 
         assert report.results["grid"][index].auc == auc(labels, probs)
         assert report.results["grid"][index].unknown_fraction == unknown_fraction(probs)
         # every GP method used the hyperparameters learnt on the first training scans
-        hp = learn_hyperparameters([intel20[i] for i in train_idx][:10], config)
+        hp = learn_hyperparameters([intel20[i] for i in train_idx][:40], config)
         assert report.hyperparameters[index] == hp
 
 

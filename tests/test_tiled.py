@@ -125,6 +125,7 @@ def test_cli_build_writes_the_map_and_refuses_to_overwrite(
     assert not (tmp_path / "b.octolgp.partial").exists()
     run_out = tmp_path / "r.octolgp"
     run = ["run", str(INTEL20), "--out", str(run_out), "--resolution", "0.2", "--quiet"]
+    run += ["--learn-scans", "10"]
     assert main(run) == 0
     with OnlineMap.open(out) as built, OnlineMap.open(run_out) as ran:
         _assert_same_map(built, ran)

@@ -87,6 +87,7 @@ SCAN_FORMATS = ("npz", "carmen", "3dtk", "rrd", "rosbag", "pcd", "ply", "scandat
 """Names accepted by ``load_scans(..., format=...)``."""
 
 _CARMEN_SUFFIXES = (".log", ".clf")
+_OTHER_SUFFIXES = {".pcd": "pcd", ".ply": "ply", ".bag": "rosbag", ".graph": "graph"}
 _ZIP_MAGIC = b"PK\x03\x04"
 _GZIP_MAGIC = b"\x1f\x8b"
 
@@ -126,7 +127,8 @@ def detect_format(path: str | Path) -> str:
         raise OctolgpError(f"scan log {str(p)!r} is not a file")
     # Suffix first: x.npz, x.log, x.clf, x.log.gz, x.clf.gz.
     suffixes = [s.lower() for s in p.suffixes[-2:]]
-    if suffixes and suffixes[-1] == ".gz":
+    compressed = bool(suffixes) and suffixes[-1] == ".gz"
+    if compressed:
         suffixes.pop()
     if suffixes and suffixes[-1] == ".npz":
         return "npz"
@@ -134,6 +136,10 @@ def detect_format(path: str | Path) -> str:
         return "carmen"
     if suffixes and suffixes[-1] == ".rrd":
         return "rrd"
+    # Unambiguous suffixes of the other formats: a damaged x.pcd gets the PCD reader's
+    # message (which part is wrong) rather than "unknown format".
+    if suffixes and suffixes[-1] in _OTHER_SUFFIXES and not compressed:
+        return _OTHER_SUFFIXES[suffixes[-1]]
     # Then the magic bytes: a zip archive is an npz, RRF2 a Rerun recording, text (or gzipped
     # text) may be CARMEN.
     try:

@@ -263,6 +263,7 @@ class CarmenReader:
         """Stream scans; hold the first :data:`DETECT_SCANS` while detecting the no-return."""
         resolved = self.max_range is not None
         pending: list[_Record] = []
+        lasers = 0  # laser lines seen, good or bad
         for line_no, line in self._lines():
             tokens = line.split()
             if not tokens:
@@ -282,6 +283,7 @@ class CarmenReader:
             parser = _PARSERS.get(tokens[0])
             if parser is None:
                 continue
+            lasers += 1
             try:
                 record = parser(tokens)
             except _BadLineError as exc:
@@ -302,6 +304,11 @@ class CarmenReader:
         if pending:
             self._detect(pending)
             yield from (self._to_scan(r) for r in pending)
+        if lasers == 0:
+            raise OctolgpError(
+                f"CARMEN log {str(self.path)!r} holds no laser message "
+                f"({', '.join(sorted(_PARSERS))})"
+            )
 
 
 def read_carmen(

@@ -19,7 +19,6 @@ lazily, one per ``next``.
 
 from __future__ import annotations
 
-import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
@@ -45,9 +44,16 @@ def _load_arrays(path: Path) -> dict[str, NDArray[np.generic]]:
     if not path.is_file():
         raise MapFileNotFound(f"npz scan log {str(path)!r} does not exist")
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {k: np.asarray(npz[k]) for k in npz.files if k in _REQUIRED + _OPTIONAL}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        # our own handle: np.load(path) leaks its file when the content is not an npz
+        with open(path, "rb") as fh:
+            npz = np.load(fh, allow_pickle=False)
+            if not isinstance(npz, np.lib.npyio.NpzFile):  # a bare .npy array
+                raise ValueError("it holds one array, not an npz archive")
+            with npz:
+                return {k: np.asarray(npz[k]) for k in npz.files if k in _REQUIRED + _OPTIONAL}
+    except Exception as exc:
+        # zipfile, zlib and numpy's .npy header parser (ast, tokenize) raise a dozen types
+        # on a damaged archive; every one of them means the file is unreadable
         msg = f"npz scan log {str(path)!r} is not a readable npz file: {exc}"
         raise OctolgpError(msg) from None
 

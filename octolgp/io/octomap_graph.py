@@ -287,7 +287,8 @@ class GraphReader(CloudReader):
             if (rec["n"] != 3).any():
                 bad = done + int(np.flatnonzero(rec["n"] != 3)[0])
                 raise self._fail(fh, f"node {index}: point {bad} is garbled (no Vector3 marker)")
-            pts = rec["p"].astype(np.float64)
+            with np.errstate(invalid="ignore"):  # a signalling NaN; caught as NaN below
+                pts = rec["p"].astype(np.float64)
             rows = np.flatnonzero(~np.isfinite(pts).all(axis=1))
             for r in rows:
                 self.bad_line(self.path, done + int(r), f"node {index}: NaN or inf", unit="point ")

@@ -403,7 +403,8 @@ class PcdReader(CloudReader):
         return np.delete(xyz, rows, axis=0) if rows.size else xyz
 
     def _xyz(self, records: np.ndarray, header: PcdHeader) -> FloatArray:
-        cols = [records[f"f{header.fields.index(a)}"].astype(np.float64) for a in "xyz"]
+        with np.errstate(invalid="ignore"):  # a signalling NaN in the file; caught as NaN
+            cols = [records[f"f{header.fields.index(a)}"].astype(np.float64) for a in "xyz"]
         return np.stack(cols, axis=1)
 
     def _read_binary(
@@ -461,7 +462,8 @@ class PcdReader(CloudReader):
                 continue
             if name in ("x", "y", "z"):
                 values = np.frombuffer(raw, dtype="<" + _TYPES[t, s], count=n, offset=pos)
-                cols[name] = values.astype(np.float64)
+                with np.errstate(invalid="ignore"):  # a signalling NaN; caught as NaN
+                    cols[name] = values.astype(np.float64)
             pos += s * c * n
         xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
         return [self._check_records(path, xyz, 0, organised)]

@@ -315,7 +315,8 @@ class PlyReader(CloudReader):
                         f"{got} of {element.count} vertices"
                     )
                 rec = np.frombuffer(buf, dtype=dtype)
-                pts = np.stack([rec[f].astype(np.float64) for f in fields], axis=1)
+                with np.errstate(invalid="ignore"):  # a signalling NaN; caught as NaN below
+                    pts = np.stack([rec[f].astype(np.float64) for f in fields], axis=1)
                 rows = np.flatnonzero(~np.isfinite(pts).all(axis=1))
                 for r in rows:
                     self.bad_line(path, done + int(r), "NaN or inf in x/y/z", unit="vertex ")

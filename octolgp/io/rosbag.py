@@ -332,7 +332,8 @@ def _decode_cloud(msg: Any) -> FloatArray:
             f"data has {data.size} bytes, width*height*point_step = {height * row}"
         )
     points = np.frombuffer(rows, dtype=dtype)
-    xyz = np.stack([points["x"], points["y"], points["z"]], axis=1).astype(np.float64)
+    with np.errstate(invalid="ignore"):  # a signalling NaN; dropped as NaN below
+        xyz = np.stack([points["x"], points["y"], points["z"]], axis=1).astype(np.float64)
     return xyz[np.isfinite(xyz).all(axis=1)]
 
 
