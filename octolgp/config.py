@@ -258,6 +258,12 @@ class OnlineConfig:
         scan cannot exhaust memory: inserting a 2D scan of 10^6 random 10 m beams
         peaks near 4 GB. Downsample such a scan (:meth:`Scan.downsample`) or raise
         the limit. Default 1_000_000.
+    kernel_cache_mb : float
+        RAM (MB) for the item covariance blocks of recently refitted leaves. A leaf
+        that gains a few items reuses the blocks of the items it had and evaluates
+        the kernel only for the new ones; the result is bit for bit that of a fresh
+        fit. Least recently used leaves are dropped first; 0 disables the cache.
+        Default 64.
     """
 
     leaf_depth: int | None = None
@@ -270,6 +276,7 @@ class OnlineConfig:
     n_jobs: int = 1
     free_voxels: int = 1
     max_scan_points: int = 1_000_000
+    kernel_cache_mb: float = 64.0
 
     def __post_init__(self) -> None:
         if self.leaf_depth is not None:
@@ -290,6 +297,7 @@ class OnlineConfig:
         _integer("OnlineConfig", "n_jobs", self.n_jobs, 1)
         _integer("OnlineConfig", "free_voxels", self.free_voxels, 1, 64)
         _integer("OnlineConfig", "max_scan_points", self.max_scan_points, 1)
+        _positive("OnlineConfig", "kernel_cache_mb", self.kernel_cache_mb, allow_zero=True)
 
 
 @dataclass(frozen=True, slots=True)

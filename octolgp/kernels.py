@@ -28,6 +28,7 @@ why the average form (not the arc-length form) suits clipping.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -114,6 +115,29 @@ class QuadratureSet:
         """Number of nodes ``N``."""
         return int(self.nodes.shape[0])
 
+    def subset(self, idx: IntArray) -> QuadratureSet:
+        """The items ``idx`` (in that order) as a new set, their nodes copied."""
+        ends = np.append(self.starts[1:], self.n_nodes)
+        counts = (ends - self.starts)[idx]
+        first = self.starts[idx]
+        offsets = np.cumsum(counts) - counts
+        node_idx = np.repeat(first, counts) + (
+            np.arange(int(counts.sum())) - np.repeat(offsets, counts)
+        )
+        return QuadratureSet(self.nodes[node_idx], self.weights[node_idx], offsets.astype(np.int64))
+
+    @functools.cached_property
+    def weight_matrix(self) -> sparse.csr_matrix:
+        """Sparse ``(I, N)`` matrix of the quadrature weights.
+
+        ``W[i, j] = w_j`` for item ``i``'s nodes ``j``, so item covariances are
+        ``W K_nodes Wᵀ``.
+        """
+        indptr = np.append(self.starts, self.n_nodes)
+        return sparse.csr_matrix(
+            (self.weights, np.arange(self.n_nodes), indptr), shape=(self.n_items, self.n_nodes)
+        )
+
 
 def node_counts(lengths: FloatArray, spacing: float, n_min: int, n_max: int) -> IntArray:
     """Nodes per segment: ``ceil(L / spacing) + 1`` clamped to ``[n_min, n_max]``."""
@@ -184,11 +208,17 @@ def matern32(r: FloatArray, length_scale: float, signal_variance: float) -> Floa
 
 
 def _weight_matrix(Q: QuadratureSet, rows: slice, lo: int, hi: int) -> sparse.csr_matrix:
-    """Sparse ``W`` (items ``rows`` x nodes ``lo:hi``) holding the quadrature weights."""
-    counts = np.diff(np.append(Q.starts[rows], hi))
-    item = np.repeat(np.arange(counts.size), counts)
+    """Sparse ``W`` (items ``rows`` x nodes ``lo:hi``) holding the quadrature weights.
+
+    Each item's nodes are one contiguous run, so the CSR arrays are the weights, the
+    node numbers and the item starts; built directly (no COO conversion), and cached
+    on the set for the common whole-set case.
+    """
+    if rows.start == 0 and rows.stop >= Q.n_items and lo == 0 and hi == Q.n_nodes:
+        return Q.weight_matrix
+    indptr = np.append(Q.starts[rows], hi) - lo
     return sparse.csr_matrix(
-        (Q.weights[lo:hi], (item, np.arange(hi - lo))), shape=(counts.size, hi - lo)
+        (Q.weights[lo:hi], np.arange(hi - lo), indptr), shape=(indptr.size - 1, hi - lo)
     )
 
 

@@ -41,16 +41,7 @@ def _subsample(
     if y.size <= cap:
         return items, y
     keep = np.sort(rng.choice(y.size, size=cap, replace=False))
-    ends = np.append(items.starts[1:], items.n_nodes)
-    counts = ends - items.starts
-    first = items.starts[keep]
-    # rebuild a set from the kept items' nodes (contiguous per item)
-    node_idx = np.repeat(first, counts[keep]) + (
-        np.arange(counts[keep].sum())
-        - np.repeat(np.cumsum(counts[keep]) - counts[keep], counts[keep])
-    )
-    starts = np.concatenate([[0], np.cumsum(counts[keep])[:-1]]).astype(np.int64)
-    return QuadratureSet(items.nodes[node_idx], items.weights[node_idx], starts), y[keep]
+    return items.subset(keep), y[keep]
 
 
 def learning_sets(

@@ -154,7 +154,12 @@ def predict_latent(gp: LocalGP, X: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 
 def fit_predict(
-    items: QuadratureSet, y: FloatArray, hp: Hyperparameters, X: FloatArray
+    items: QuadratureSet,
+    y: FloatArray,
+    hp: Hyperparameters,
+    X: FloatArray,
+    K: FloatArray | None = None,
+    Ks: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Fit on items and predict at one set of test points, without forming ``L⁻¹``.
 
@@ -171,14 +176,26 @@ def fit_predict(
     hp : Hyperparameters
     X : ndarray of shape (m, d)
         Test points, metres, world frame.
+    K : ndarray of shape (n, n), optional
+        The noise-free item covariance of ``items``, if the caller has it (an online
+        leaf reuses the blocks of the items it already had); not modified.
+    Ks : ndarray of shape (m, n), optional
+        The covariance between ``X`` and ``items``, likewise.
 
     Returns
     -------
     mean, var : ndarray of shape (m,)
         Latent posterior (variance excludes the noise).
     """
-    L, weights = _factor(items, y, hp)
-    Ks = item_covariance(points_set(X), items, hp.length_scale, hp.signal_variance)
+    if K is None:
+        L, weights = _factor(items, y, hp)
+    else:
+        Kn = K.copy()
+        Kn[np.diag_indices_from(Kn)] += hp.noise_variance
+        L = _cholesky(Kn)
+        weights = cho_solve((L, True), y, check_finite=False)
+    if Ks is None:
+        Ks = item_covariance(points_set(X), items, hp.length_scale, hp.signal_variance)
     mean = Ks @ weights
     V = solve_triangular(L, Ks.T, lower=True, check_finite=False)  # (n, m)
     var = hp.signal_variance - np.einsum("ij,ij->j", V, V)

@@ -231,6 +231,7 @@ class MapFile:
                 )
             config = MapConfig.from_dict(json.loads(meta["config"]))
             hp_data = json.loads(meta["hyperparameters"])
+            hp = None if hp_data is None else Hyperparameters(**hp_data)
             n_scans = int(meta["n_scans"])
             keys = [int(k) for (k,) in con.execute("SELECT key FROM leaves")]
             journal = int(con.execute("SELECT COUNT(*) FROM scans").fetchone()[0])
@@ -244,7 +245,7 @@ class MapFile:
         except (sqlite3.Error, KeyError, ValueError, TypeError, OSError) as exc:
             raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
         m = OnlineMap(config, _opened=True)  # no spill file: this file is the backing
-        m.hyperparameters = None if hp_data is None else Hyperparameters(**hp_data)
+        m.hyperparameters = hp
         m.n_scans = n_scans
         f = cls(p, con)
         m._file = f
@@ -256,7 +257,10 @@ class MapFile:
     # ------------------------------------------------------------------ reads
     def read_leaf(self, key: int) -> Leaf:
         """The persisted leaf ``key``."""
-        row = self._con.execute("SELECT data FROM leaves WHERE key=?", (int(key),)).fetchone()
+        try:  # leaves are read lazily: a damaged file can fail here, long after open()
+            row = self._con.execute("SELECT data FROM leaves WHERE key=?", (int(key),)).fetchone()
+        except sqlite3.Error as exc:
+            raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
         if row is None:
             raise OctolgpError(f"map file {str(self.path)!r} lacks leaf {key}")
         try:
@@ -266,13 +270,16 @@ class MapFile:
 
     def scans(self, start: int = 0) -> Iterator[Scan]:
         """The journaled scans with index > ``start``, in order."""
-        cur = self._con.execute(
-            "SELECT idx, dim, origin, points, max_range, stamp FROM scans WHERE idx > ? "
-            "ORDER BY idx",
-            (start,),
-        )
-        for row in cur:  # one scan per row
-            yield _row_scan(row)
+        try:
+            cur = self._con.execute(
+                "SELECT idx, dim, origin, points, max_range, stamp FROM scans WHERE idx > ? "
+                "ORDER BY idx",
+                (start,),
+            )
+            for row in cur:  # one scan per row
+                yield _row_scan(row)
+        except (sqlite3.Error, ValueError, TypeError, ZeroDivisionError) as exc:
+            raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
 
     # ------------------------------------------------------------------ writes
     def commit(

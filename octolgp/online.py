@@ -34,7 +34,9 @@ every leaf is refitted from its stored evidence with the new values.
 from __future__ import annotations
 
 import dataclasses
+import threading
 import time
+from collections import OrderedDict
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -48,7 +50,8 @@ from threadpoolctl import ThreadpoolController
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.gpmap import items_and_targets, quadrature_spacing
-from octolgp.keys import addressable_mask, addressable_range
+from octolgp.kernels import QuadratureSet, item_covariance, points_set
+from octolgp.keys import addressable_mask, addressable_range, pack_keys
 from octolgp.learning import learn_hyperparameters
 from octolgp.leaves import LeafGrid, assign_points, assign_segments
 from octolgp.lgp import LocalGPMap, fit_clusters
@@ -118,8 +121,107 @@ class ScanUpdate:
     repaired: int = 0
 
 
+@dataclass(frozen=True, slots=True)
+class _Blocks:
+    """A leaf's item covariance blocks for its first ``n_hits`` hits and ``n_free`` pieces."""
+
+    n_hits: int
+    n_free: int
+    K: FloatArray  # (n, n) noise-free item covariance, items = hits then pieces
+    Ks: FloatArray  # (V, n) voxel centres x items
+    key: tuple[float, ...]  # what the blocks depend on besides the items
+
+
+class KernelCache:
+    """Least-recently-used item covariance blocks of leaves, bounded in bytes.
+
+    Thread-safe (the map refits leaves on several threads); each leaf's entry is
+    touched by one thread at a time.
+
+    Parameters
+    ----------
+    max_bytes : int
+        Entries are dropped, oldest first, while the total exceeds this.
+    """
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self.bytes = 0
+        self.hits = 0
+        self.misses = 0
+        self._entries: OrderedDict[int, _Blocks] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: int) -> _Blocks | None:
+        """The entry of leaf ``key``, or ``None``."""
+        with self._lock:
+            entry = self._entries.get(key)
+            if entry is not None:
+                self._entries.move_to_end(key)
+            return entry
+
+    def put(self, key: int, entry: _Blocks) -> None:
+        """Store (or replace) the entry of leaf ``key`` and evict down to the budget."""
+        size = entry.K.nbytes + entry.Ks.nbytes
+        with self._lock:
+            old = self._entries.pop(key, None)
+            if old is not None:
+                self.bytes -= old.K.nbytes + old.Ks.nbytes
+            if size > self.max_bytes:
+                return
+            self._entries[key] = entry
+            self.bytes += size
+            while self.bytes > self.max_bytes:  # oldest first
+                _, gone = self._entries.popitem(last=False)
+                self.bytes -= gone.K.nbytes + gone.Ks.nbytes
+
+
+def _leaf_blocks(
+    leaf: Leaf,
+    items: QuadratureSet,
+    centres: FloatArray,
+    hp: Hyperparameters,
+    key: tuple[float, ...],
+    cache: KernelCache,
+) -> tuple[FloatArray, FloatArray]:
+    """The leaf's ``K`` and ``Ks``, reusing its cached blocks for the items it already had.
+
+    Items are the hits then the free pieces, both append-only, so the old items sit at
+    known rows. Every entry of an item covariance depends only on its two items (node
+    distances, the kernel and the weighted sums over each item's nodes, in a fixed
+    order), so the assembled blocks equal freshly computed ones bit for bit.
+    """
+    packed = int(pack_keys(leaf.index[None, :])[0])
+    h, f = leaf.hits.shape[0], leaf.free_start.shape[0]
+    old = cache.get(packed)
+    ls, sf2 = hp.length_scale, hp.signal_variance
+    if old is None or old.key != key or old.n_hits > h or old.n_free > f:
+        cache.misses += 1
+        K = item_covariance(items, items, ls, sf2)
+        Ks = item_covariance(points_set(centres), items, ls, sf2)
+    else:
+        cache.hits += 1
+        h0, f0 = old.n_hits, old.n_free
+        old_idx = np.concatenate([np.arange(h0), h + np.arange(f0)])
+        new_idx = np.concatenate([np.arange(h0, h), h + np.arange(f0, f)])
+        new = items.subset(new_idx)
+        K = np.empty((h + f, h + f))
+        K[np.ix_(old_idx, old_idx)] = old.K
+        K[new_idx, :] = item_covariance(new, items, ls, sf2)
+        K[:, new_idx] = item_covariance(items, new, ls, sf2)
+        Ks = np.empty((centres.shape[0], h + f))
+        Ks[:, old_idx] = old.Ks
+        Ks[:, new_idx] = item_covariance(points_set(centres), new, ls, sf2)
+    cache.put(packed, _Blocks(h, f, K, Ks, key))
+    return K, Ks
+
+
 def predict_leaf(
-    leaf: Leaf, centres: FloatArray, config: MapConfig, hp: Hyperparameters
+    leaf: Leaf,
+    centres: FloatArray,
+    config: MapConfig,
+    hp: Hyperparameters,
+    cache: KernelCache | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Fit a leaf's local GP(s) on its evidence and predict at its voxel centres.
 
@@ -130,6 +232,9 @@ def predict_leaf(
         The leaf's voxel centres, metres.
     config : MapConfig
     hp : Hyperparameters
+    cache : KernelCache, optional
+        Item covariance blocks of earlier fits of this leaf, reused for the items it
+        already had (one-GP leaves only); the result does not depend on it.
 
     Returns
     -------
@@ -145,8 +250,20 @@ def predict_leaf(
         if leaf.n_items > cap:  # free space only: an even, deterministic thinning
             keep = np.linspace(0, fs.shape[0] - 1, cap).round().astype(np.int64)
             fs, fe = fs[keep], fe[keep]
+            cache = None  # the thinned items are not append-only
         items, y = items_and_targets(hits, fs, fe, config, spacing)
-        return fit_predict(items, y, hp, centres)
+        if cache is None:
+            return fit_predict(items, y, hp, centres)
+        tc = config.training
+        key = (
+            hp.length_scale,
+            hp.signal_variance,
+            spacing,
+            float(tc.min_quadrature_nodes),
+            float(tc.max_quadrature_nodes),
+        )
+        K, Ks = _leaf_blocks(leaf, items, centres, hp, key, cache)
+        return fit_predict(items, y, hp, centres, K=K, Ks=Ks)
     # the paper's iterative k-means under the cluster cap, nearest-centre prediction
     data = TrainingData(hits, fs, fe, np.full(fs.shape[0], -1, dtype=np.int64))
     # a lattice at the map resolution is fine enough for a leaf's Voronoi cells
@@ -156,7 +273,9 @@ def predict_leaf(
     return LocalGPMap(config, hp, clusters=clusters, gps=gps)._latent_nearest(centres)
 
 
-def fit_leaf(leaf: Leaf, config: MapConfig, hp: Hyperparameters) -> Leaf:
+def fit_leaf(
+    leaf: Leaf, config: MapConfig, hp: Hyperparameters, cache: KernelCache | None = None
+) -> Leaf:
     """Fit a leaf on its evidence and return it with fresh voxel values (a pure function).
 
     The voxel centres follow from ``leaf.index`` and the leaf grid of ``config``; the
@@ -172,6 +291,8 @@ def fit_leaf(leaf: Leaf, config: MapConfig, hp: Hyperparameters) -> Leaf:
         Evidence of one leaf (its value arrays are ignored).
     config : MapConfig
     hp : Hyperparameters
+    cache : KernelCache, optional
+        Reused kernel blocks (:func:`predict_leaf`); the result does not depend on it.
 
     Returns
     -------
@@ -181,7 +302,7 @@ def fit_leaf(leaf: Leaf, config: MapConfig, hp: Hyperparameters) -> Leaf:
     """
     oc = config.online
     centres = LeafGrid.from_config(config).voxel_centres(leaf.index)
-    mean, var = predict_leaf(leaf, centres, config, hp)
+    mean, var = predict_leaf(leaf, centres, config, hp, cache)
     prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
     pruned = False
     if oc.prune and (prob.max() < oc.prune_free or prob.min() > oc.prune_occupied):
@@ -282,6 +403,8 @@ class OnlineMap:
         self._pool: ThreadPoolExecutor | None = None
         self._file: Any = None
         self.build_stats: dict[str, float] = {}
+        cache_mb = config.online.kernel_cache_mb
+        self.kernel_cache = None if cache_mb == 0 else KernelCache(int(cache_mb * 1e6))
         if recording is not None:
             from octolgp.viz.stream import RerunSink
 
@@ -550,14 +673,17 @@ class OnlineMap:
         hp = self.hyperparameters
         assert hp is not None
         n_jobs = self.config.online.n_jobs
+        cache = self.kernel_cache
         # one BLAS thread per leaf: small matrices, parallelism is over leaves
         with _blas_controller().limit(limits=1):
             if n_jobs > 1 and len(leaves) > 1:
                 if self._pool is None:
                     self._pool = ThreadPoolExecutor(max_workers=n_jobs)
-                out = list(self._pool.map(lambda leaf: fit_leaf(leaf, self.config, hp), leaves))
+                out = list(
+                    self._pool.map(lambda leaf: fit_leaf(leaf, self.config, hp, cache), leaves)
+                )
             else:
-                out = [fit_leaf(leaf, self.config, hp) for leaf in leaves]
+                out = [fit_leaf(leaf, self.config, hp, cache) for leaf in leaves]
         return out, sum(leaf.pruned for leaf in out)
 
     # ------------------------------------------------------------------ queries

@@ -742,3 +742,23 @@ def test_cli_debug_shows_the_traceback(
     monkeypatch.chdir(cli_dir)
     with pytest.raises(error):
         main(["--debug", *argv])
+
+
+def test_npz_holding_one_bare_array_refused(tmp_path: Path) -> None:
+    path = tmp_path / "a.npz"
+    with path.open("wb") as fh:
+        np.save(fh, np.zeros(3))
+    with pytest.raises(OctolgpError, match="not a readable npz file"):
+        list(load_scans(path))
+
+
+@pytest.mark.xfail(
+    strict=True,
+    raises=RuntimeWarning,
+    reason="lead: baselines/ogm.py:124 np.errstate(divide=, invalid=) lacks over='ignore': a "
+    "beam with a subnormal component (1e-308) overflows resolution/|d| -> RuntimeWarning "
+    "(found by test_fuzz)",
+)
+def test_insert_scan_beam_with_subnormal_component(map2d: OnlineMap) -> None:
+    map2d.insert_scan(Scan(O2, [[1.0, 1.11253693e-308]]))
+    _assert_valid(map2d)
