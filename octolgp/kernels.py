@@ -178,7 +178,7 @@ def quadrature_set(
     counts = np.concatenate(
         [np.ones(len(points), dtype=np.int64), node_counts(lengths, spacing, n_min, n_max)]
     )
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    starts = (np.cumsum(counts) - counts).astype(np.int64)
     item = np.repeat(np.arange(counts.size), counts)
     j = np.arange(item.size) - starts[item]
     U, W = _cc_table(int(max(n_max, 1)))

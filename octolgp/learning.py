@@ -19,6 +19,7 @@ from scipy.optimize import minimize
 from threadpoolctl import threadpool_limits
 
 from octolgp.config import Hyperparameters, MapConfig
+from octolgp.errors import OctolgpError
 from octolgp.gpmap import cluster_items, quadrature_spacing
 from octolgp.kernels import QuadratureSet, node_distances
 from octolgp.local_gp import log_marginal_likelihood, loo_log_predictive, loo_predictions
@@ -185,8 +186,13 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
     Raises
     ------
     OctolgpError
-        On bad scans.
+        On bad scans, or scans that give no training data (every beam on its sensor).
     """
     data = make_training_data(scans, config)
+    if data.n_items == 0:
+        raise OctolgpError(
+            "learn_hyperparameters: the scans give no training data (every beam has zero "
+            "length); pass MapConfig.hyperparameters or scans with real beams"
+        )
     with threadpool_limits(limits=1):  # small matrices: one BLAS thread is fastest
         return learn_from_clusters(data, partition(data, config), config)

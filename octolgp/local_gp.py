@@ -108,6 +108,8 @@ def _factor(
     K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
     K[np.diag_indices_from(K)] += hp.noise_variance
     L = _cholesky(K)
+    if L.shape[0] == 0:  # no items: the GP is its prior
+        return L, np.zeros(0)
     return L, cho_solve((L, True), y, check_finite=False)
 
 
@@ -128,7 +130,9 @@ def fit_local_gp(items: QuadratureSet, y: FloatArray, hp: Hyperparameters) -> Lo
     LocalGP
     """
     L, weights = _factor(items, y, hp)
-    L_inv = solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
+    L_inv = np.zeros((0, 0))
+    if L.shape[0]:
+        L_inv = solve_triangular(L, np.eye(L.shape[0]), lower=True, check_finite=False)
     return LocalGP(items=items, L=L, L_inv=L_inv, weights=weights, hp=hp)
 
 

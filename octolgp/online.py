@@ -58,7 +58,7 @@ from octolgp.lgp import LocalGPMap, fit_clusters
 from octolgp.local_gp import fit_predict, jitter_repairs
 from octolgp.partition import partition
 from octolgp.plsc import occupancy_probability
-from octolgp.scan import FloatArray, Scan, as_points
+from octolgp.scan import FloatArray, Scan, as_points, check_scan_size
 from octolgp.store import Leaf, LeafStore
 from octolgp.training import IntArray, TrainingData, make_training_data
 
@@ -468,6 +468,7 @@ class OnlineMap:
     def _check_scan(self, scan: object) -> Scan:
         if not isinstance(scan, Scan):
             raise OctolgpError(f"scan must be a Scan, got {type(scan).__name__}")
+        check_scan_size(scan, self.config.online.max_scan_points)
         if scan.dim != self.config.dim:
             raise OctolgpError(f"scan is {scan.dim}D but MapConfig.dim is {self.config.dim}")
         res, depth = self.config.resolution, self.config.tree_depth
@@ -508,21 +509,24 @@ class OnlineMap:
         self.sink.on_scan(self, scan, index)
         if self.hyperparameters is None:
             self._buffer.append(scan)
-            if len(self._buffer) < self.config.online.learn_scans:
+            if len(self._buffer) >= self.config.online.learn_scans:
+                update = self._learn_and_flush(t0, journal=[(index, scan)])
+                if update is not None:
+                    return update
+            else:
                 self.n_scans = index
                 self._commit([], [(index, scan)])
-                return ScanUpdate(
-                    scan=self.n_scans,
-                    touched_leaves=0,
-                    refit_leaves=0,
-                    new_items=0,
-                    pruned_leaves=0,
-                    seconds=time.perf_counter() - t0,
-                    buffered=True,
-                    n_leaves=len(self.store),
-                    memory_bytes=self.memory_bytes(),
-                )
-            return self._learn_and_flush(t0, journal=[(index, scan)])
+            return ScanUpdate(
+                scan=self.n_scans,
+                touched_leaves=0,
+                refit_leaves=0,
+                new_items=0,
+                pruned_leaves=0,
+                seconds=time.perf_counter() - t0,
+                buffered=True,
+                n_leaves=len(self.store),
+                memory_bytes=self.memory_bytes(),
+            )
         return self._integrate([scan], t0, index, journal=[(index, scan)])
 
     def insert_scans(self, scans: Iterable[Scan]) -> list[ScanUpdate]:
@@ -539,7 +543,14 @@ class OnlineMap:
             return None
         return self._learn_and_flush(time.perf_counter(), journal=[])
 
-    def _learn_and_flush(self, t0: float, journal: list[tuple[int, Scan]]) -> ScanUpdate:
+    def _learn_and_flush(self, t0: float, journal: list[tuple[int, Scan]]) -> ScanUpdate | None:
+        """Learn on the buffer and insert it; ``None`` (still buffering) without data."""
+        if make_training_data(self._buffer, self._raw_config).n_items == 0:
+            # nothing to learn from yet (every beam on its sensor): keep buffering
+            if journal:
+                self.n_scans = journal[-1][0]
+                self._commit([], journal)
+            return None
         t1 = time.perf_counter()
         hp = learn_hyperparameters(self._buffer, self.config)
         learning = time.perf_counter() - t1

@@ -130,7 +130,7 @@ def _clip_to_box(
 ) -> tuple[FloatArray, FloatArray, np.ndarray]:
     """Liang-Barsky clipping of segments ``a → b`` to the box ``[lo, hi]``."""
     d = b - a
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t0 = (lo - a) / d
         t1 = (hi - a) / d
     tmin = np.where(d != 0, np.minimum(t0, t1), np.where((a >= lo) & (a <= hi), -np.inf, np.inf))

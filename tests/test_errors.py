@@ -232,11 +232,6 @@ def test_too_many_points_refused_by_check_scan_size() -> None:
         check_scan_size(scan, 10)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="lead: OnlineMap._check_scan must call check_scan_size(scan, "
-    "config.online.max_scan_points) (online.py)",
-)
 def test_insert_scan_refuses_more_than_max_scan_points() -> None:
     cfg = dataclasses.replace(CFG2, online=OnlineConfig(max_scan_points=10))
     m = OnlineMap(cfg)
@@ -247,23 +242,11 @@ def test_insert_scan_refuses_more_than_max_scan_points() -> None:
     _assert_same(m, before)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ValueError,
-    reason="lead: learning.learn_from_clusters np.concatenate([]) on scans with no training "
-    "items (every beam on its sensor) raises a bare ValueError",
-)
 def test_learning_on_degenerate_scans_refused_clearly() -> None:
     with pytest.raises(OctolgpError, match="no training data"):
         learn_hyperparameters([Scan(O2, np.zeros((3, 2)))], MapConfig(dim=2, resolution=0.2))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ValueError,
-    reason="lead: online.py insert_scan with learning (hyperparameters=None) appends to "
-    "_buffer before learn_hyperparameters raises ValueError on degenerate scans",
-)
 def test_online_learning_on_degenerate_scan_keeps_map() -> None:
     m = OnlineMap(MapConfig(dim=2, resolution=0.2, online=OnlineConfig(learn_scans=1)))
     try:
@@ -275,12 +258,6 @@ def test_online_learning_on_degenerate_scan_keeps_map() -> None:
         _assert_valid(m)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ValueError,
-    reason="lead: baselines/gp.py whole_data_cluster min() of an empty array when the "
-    "scans give no training items (build_map method='gp')",
-)
 def test_build_gp_on_degenerate_scan() -> None:
     # accepted like "lgp" and "mgp" (a map that knows nothing), or refused clearly
     g = build_map([Scan(O2, np.zeros((3, 2)))], CFG2, method="gp")
@@ -711,12 +688,6 @@ def test_cli_user_error_is_one_line_exit_2(
     assert (cli_dir / "m.octolgp").read_bytes() == before  # never clobbered
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=ValueError,
-    reason="lead: a log whose scans give no training data (every beam on its sensor) reaches "
-    "learning.learn_from_clusters np.concatenate([]) -> bare ValueError, traceback",
-)
 def test_cli_degenerate_log_is_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: Any
 ) -> None:
@@ -752,13 +723,6 @@ def test_npz_holding_one_bare_array_refused(tmp_path: Path) -> None:
         list(load_scans(path))
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=RuntimeWarning,
-    reason="lead: baselines/ogm.py:124 np.errstate(divide=, invalid=) lacks over='ignore': a "
-    "beam with a subnormal component (1e-308) overflows resolution/|d| -> RuntimeWarning "
-    "(found by test_fuzz)",
-)
 def test_insert_scan_beam_with_subnormal_component(map2d: OnlineMap) -> None:
     map2d.insert_scan(Scan(O2, [[1.0, 1.11253693e-308]]))
     _assert_valid(map2d)

@@ -15,9 +15,16 @@ from octolgp.training import TrainingData
 
 
 def whole_data_cluster(data: TrainingData) -> Cluster:
-    """A single cluster holding every training item, segments whole."""
-    lo = np.concatenate([data.hits, data.seg_start, data.seg_end]).min(axis=0)
-    hi = np.concatenate([data.hits, data.seg_start, data.seg_end]).max(axis=0)
+    """A single cluster holding every training item, segments whole.
+
+    With no items (every beam on its sensor) the cluster is empty, at the origin, and
+    the GP fitted on it predicts the prior.
+    """
+    every = np.concatenate([data.hits, data.seg_start, data.seg_end])
+    if every.shape[0] == 0:
+        lo = hi = np.zeros(every.shape[1])
+    else:
+        lo, hi = every.min(axis=0), every.max(axis=0)
     return Cluster(
         centre=(lo + hi) / 2.0,
         lo=lo,

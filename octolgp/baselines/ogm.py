@@ -121,7 +121,7 @@ def traverse_voxels(
     remaining = np.abs(key_e - key_o)  # borders still to cross, per axis
     total = remaining.sum(axis=1)  # voxels yielded per ray
     border = key_to_coord(key_o, resolution, tree_depth) + step * (0.5 * resolution)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         t_max = (border - o) / d
         t_delta = resolution / np.abs(d)
     t_max[remaining == 0] = np.inf  # an axis without borders to cross never steps
