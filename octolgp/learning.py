@@ -87,9 +87,14 @@ def _negated_sum(
 
 
 def fit_kernel(
-    sets: list[tuple[QuadratureSet, FloatArray]], initial: Hyperparameters
+    sets: list[tuple[QuadratureSet, FloatArray]],
+    initial: Hyperparameters,
+    min_noise_variance: float = 1e-4,
 ) -> tuple[float, float, float]:
     """Maximise the summed log marginal likelihood over log-parameters (L-BFGS-B).
+
+    The noise variance is kept at or above ``min_noise_variance``
+    (``LearningConfig.min_noise_variance``).
 
     Returns
     -------
@@ -98,7 +103,9 @@ def fit_kernel(
     objective = _negated_sum(log_marginal_likelihood, sets, n_params=3, scale=1.0)
 
     x0 = np.log([initial.length_scale, initial.signal_variance, initial.noise_variance])
-    bounds = [(np.log(1e-2), np.log(1e2)), (np.log(1e-2), np.log(1e3)), (np.log(1e-4), np.log(1e2))]
+    floor = np.log(min_noise_variance)
+    bounds = [(np.log(1e-2), np.log(1e2)), (np.log(1e-2), np.log(1e3)), (floor, np.log(1e2))]
+    x0[2] = max(x0[2], floor)
     best = None
     for shift in (0.0, np.log(3.0)):  # two starts in the length scale
         start = x0 + np.array([shift, 0.0, 0.0])
@@ -117,7 +124,7 @@ def learn_from_clusters(
     initial = Hyperparameters(length_scale=10.0 * config.resolution)
     spacing = quadrature_spacing(config, initial.length_scale)
     sets = learning_sets(data, clusters, config, spacing)
-    ell, sf2, sn2 = fit_kernel(sets, initial)
+    ell, sf2, sn2 = fit_kernel(sets, initial, config.learning.min_noise_variance)
     hp = Hyperparameters(length_scale=ell, signal_variance=sf2, noise_variance=sn2)
     spacing = quadrature_spacing(config, ell)
     sets = learning_sets(data, clusters, config, spacing)
