@@ -158,3 +158,13 @@ def test_cli_eval_bad_input_exits_2_with_one_line(
     assert needle in err[0]
     assert "Traceback" not in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_fast_online_gives_the_online_numbers(intel20: list, report) -> None:
+    config = MapConfig(dim=2, resolution=0.2)
+    fast = evaluate_log(
+        intel20, config, seeds=2, fraction=0.2, run=2, methods=["online"], fast_online=True
+    )
+    for a, b in zip(fast.results["online"], report.results["online"], strict=True):
+        assert a.auc == b.auc
+        assert a.unknown_fraction == b.unknown_fraction

@@ -188,6 +188,10 @@ def _builders(
     from octolgp.online import OnlineMap
 
     def online(train: list[Scan]) -> Any:
+        if fast_online:
+            from octolgp.tiled import build_tiled
+
+            return build_tiled(train, config, n_jobs=n_jobs)
         cfg = dataclasses.replace(config, online=dataclasses.replace(config.online, n_jobs=n_jobs))
         m = OnlineMap(cfg)
         for s in train:
