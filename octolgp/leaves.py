@@ -129,6 +129,10 @@ class LeafGrid:
         return pack_keys(index)
 
 
+SEGMENT_BLOCK = 16_384
+"""Segments assigned to leaves per block (bounds the transient arrays to ~100 MB)."""
+
+
 @functools.lru_cache(maxsize=8)
 def _centre_offsets(dim: int, side: int, resolution: float) -> FloatArray:
     """Voxel centres of a leaf relative to its lower corner, (side**dim, dim), x fastest."""
@@ -208,6 +212,21 @@ def assign_segments(
     empty = np.zeros((0, d))
     if start.shape[0] == 0:
         return np.zeros(0, dtype=np.int64), np.zeros((0, d), dtype=np.int64), empty, empty
+    if start.shape[0] > SEGMENT_BLOCK:
+        # blocks of segments bound the transient (segment, leaf) candidate arrays
+        parts = [
+            assign_segments(
+                grid, start[lo : lo + SEGMENT_BLOCK], end[lo : lo + SEGMENT_BLOCK], min_piece
+            )
+            for lo in range(0, start.shape[0], SEGMENT_BLOCK)
+        ]
+        offsets = np.arange(0, start.shape[0], SEGMENT_BLOCK)
+        return (
+            np.concatenate([p[0] + off for p, off in zip(parts, offsets, strict=True)]),
+            np.concatenate([p[1] for p in parts]),
+            np.concatenate([p[2] for p in parts]),
+            np.concatenate([p[3] for p in parts]),
+        )
     # keys of a depth-``leaf_depth`` tree with voxels of one leaf edge are leaf indices
     seg, keys = traverse_voxels(start, end, grid.edge, grid.leaf_depth)
     # traverse_voxels stops before the end's leaf: add it

@@ -38,6 +38,9 @@ from octolgp.training import check_scans
 
 __all__ = ["TASK_ITEMS", "build_tiled", "fit_leaves"]
 
+CHUNK_BEAMS = 60_000
+"""Beams per chunk when gathering a whole log's evidence into leaves."""
+
 TASK_ITEMS = 20_000
 """Training items (summed over leaves) per Dask task: tasks of ~0.1-1 s, few enough
 that the scheduler's per-task overhead (~1 ms) stays negligible."""
@@ -49,6 +52,20 @@ def fit_leaves(leaves: list[Leaf], config: MapConfig, hp: Hyperparameters) -> li
 
     with threadpool_limits(limits=1):
         return [fit_leaf(leaf, config, hp) for leaf in leaves]
+
+
+def _chunks(scans: list[Scan], beams: int) -> Iterator[list[Scan]]:
+    """Consecutive runs of scans holding about ``beams`` beams each (at least one scan)."""
+    chunk: list[Scan] = []
+    total = 0
+    for s in scans:  # one iteration per scan
+        chunk.append(s)
+        total += len(s)
+        if total >= beams:
+            yield chunk
+            chunk, total = [], 0
+    if chunk:
+        yield chunk
 
 
 def _batches(
@@ -172,11 +189,14 @@ def build_tiled(
         online=dataclasses.replace(config.online, n_jobs=n_jobs),
     )
     m = OnlineMap(fixed, path)
+    # every leaf is fitted once here: no kernel blocks to reuse, so no cache to fill
+    cache, m.kernel_cache = m.kernel_cache, None
     try:
         _fill(m, scan_list, scheduler, workers, task_items, stats)
     except BaseException:
         m.close()
         raise
+    m.kernel_cache = cache
     return m
 
 
@@ -223,16 +243,30 @@ def _fill(
     t = time.perf_counter()
     for s in scans:
         m._check_scan(s)
-    with _blas_controller().limit(limits=1):
-        data = make_training_data(scans, m._raw_config)
-    stats["training"] = time.perf_counter() - t
-    t = time.perf_counter()
-    changed, _touched, new_items = m._gather(data)
-    del data
-    stats["assign"] = time.perf_counter() - t
-    keys = [k for k, _ in changed]
-    leaves = [leaf for _, leaf in changed]
-    del changed
+    stats["training"] = stats["assign"] = 0.0
+    # Evidence is gathered chunk by chunk in time order (first item per voxel wins, so
+    # the leaves end up exactly as from all scans at once), which bounds the transient
+    # arrays of the segment-to-leaf assignment by the chunk, not the log.
+    first_touch: dict[int, None] = {}
+    new_items = 0
+    for chunk in _chunks(scans, CHUNK_BEAMS):  # a few hundred thousand beams each
+        t = time.perf_counter()
+        with _blas_controller().limit(limits=1):
+            data = make_training_data(chunk, m._raw_config)
+        stats["training"] += time.perf_counter() - t
+        t = time.perf_counter()
+        changed, _touched, added = m._gather(data)
+        del data
+        new_items += added
+        for key, leaf in changed:  # one iteration per leaf that gained evidence
+            m.store.put(key, leaf)
+            first_touch.setdefault(key, None)
+        del changed
+        stats["assign"] += time.perf_counter() - t
+    keys = list(first_touch)
+    gathered = [m.store.peek(k) for k in keys]
+    leaves = [g for g in gathered if g is not None]
+    del gathered
     t = time.perf_counter()
     index = len(scans)
     pruned = 0
