@@ -84,9 +84,26 @@ def _cmd_build(args: argparse.Namespace) -> int:
     # build beside the target and rename at the end: a killed build leaves no half map
     partial = out.with_name(out.name + ".partial")
     partial.unlink(missing_ok=True)
-    m = build_tiled(
-        scan_list, config, path=partial, scheduler=scheduler, workers=args.workers, n_jobs=args.jobs
-    )
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, unit="leaf", disable=args.quiet or None, dynamic_ncols=True)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        m = build_tiled(
+            scan_list,
+            config,
+            path=partial,
+            scheduler=scheduler,
+            workers=args.workers,
+            n_jobs=args.jobs,
+            progress=progress,
+        )
+    finally:
+        bar.close()
     stats = m.build_stats
     m.close()
     os.replace(partial, out)

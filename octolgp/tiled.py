@@ -24,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +133,7 @@ def build_tiled(
     workers: int | None = None,
     n_jobs: int = 1,
     task_items: int = TASK_ITEMS,
+    progress: Callable[[int, int], None] | None = None,
 ) -> OnlineMap:
     """Build a leaf-store map from all scans at once, each leaf fitted once.
 
@@ -156,6 +157,8 @@ def build_tiled(
         Threads over leaves for ``scheduler=None``.
     task_items : int
         Training items per Dask task.
+    progress : callable, optional
+        Called as ``progress(leaves_fitted, leaves_total)`` after each batch of leaves.
 
     Returns
     -------
@@ -192,7 +195,7 @@ def build_tiled(
     # every leaf is fitted once here: no kernel blocks to reuse, so no cache to fill
     cache, m.kernel_cache = m.kernel_cache, None
     try:
-        _fill(m, scan_list, scheduler, workers, task_items, stats)
+        _fill(m, scan_list, scheduler, workers, task_items, stats, progress)
     except BaseException:
         m.close()
         raise
@@ -235,6 +238,7 @@ def _fill(
     workers: int | None,
     task_items: int,
     stats: dict[str, float],
+    progress: Callable[[int, int], None] | None = None,
 ) -> None:
     """Gather all evidence, fit every leaf (threads or Dask), store and commit."""
     from octolgp.online import _blas_controller
@@ -269,7 +273,7 @@ def _fill(
     del gathered
     t = time.perf_counter()
     index = len(scans)
-    pruned = 0
+    pruned = done = 0
     for group_k, group_l in _fitted(m, keys, leaves, scheduler, workers, task_items):
         for key, leaf in zip(group_k, group_l, strict=True):  # one iteration per leaf
             leaf.touched = index
@@ -277,6 +281,9 @@ def _fill(
             m.store.put(key, leaf)
         # persist each batch so a memory budget can evict it (no scans yet: n_scans 0)
         m._commit(group_k, [])
+        done += len(group_k)
+        if progress is not None:
+            progress(done, len(keys))
     stats["fit"] = time.perf_counter() - t
     t = time.perf_counter()
     m.n_scans = index
