@@ -62,9 +62,11 @@ def _cmd_build(args: argparse.Namespace) -> int:
     import os
 
     from octolgp.config import MapConfig, OnlineConfig
-    from octolgp.tiled import build_tiled
+    from octolgp.tiled import build_tiled, build_voxelized
 
     out = Path(args.out)
+    if args.method != "lgp" and args.scheduler is not None:
+        raise OctolgpError(f"--scheduler runs --method lgp only, got --method {args.method}")
     if out.exists() and not args.overwrite:
         raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
     first, scans = _first_and_rest(args.scans, args.format, args.skip_bad)
@@ -93,15 +95,18 @@ def _cmd_build(args: argparse.Namespace) -> int:
         bar.update(done - bar.n)
 
     try:
-        m = build_tiled(
-            scan_list,
-            config,
-            path=partial,
-            scheduler=scheduler,
-            workers=args.workers,
-            n_jobs=args.jobs,
-            progress=progress,
-        )
+        if args.method == "lgp":
+            m = build_tiled(
+                scan_list,
+                config,
+                path=partial,
+                scheduler=scheduler,
+                workers=args.workers,
+                n_jobs=args.jobs,
+                progress=progress,
+            )
+        else:
+            m = build_voxelized(scan_list, config, args.method, path=partial, progress=progress)
     finally:
         bar.close()
     stats = m.build_stats
@@ -513,6 +518,13 @@ def make_parser() -> argparse.ArgumentParser:
     bld.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
     bld.add_argument("--format", default=None, help="scan log format (default: guessed)")
     bld.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    bld.add_argument(
+        "--method",
+        choices=["lgp", "gp", "mgp", "ogm"],
+        default="lgp",
+        help="lgp: overlapping local GPs (default); gp, mgp, ogm: the baselines, stored as "
+        "their values at the voxel centres",
+    )
     bld.add_argument("--jobs", type=_positive_int, default=1, help="threads fitting leaves")
     bld.add_argument(
         "--scheduler",

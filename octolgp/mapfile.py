@@ -250,7 +250,7 @@ class MapFile:
         f = cls(p, con)
         m._file = f
         m.store.attach(f, keys)
-        if m.hyperparameters is None:  # the scans were buffered for learning
+        if m.hyperparameters is None and not keys:  # the scans were buffered for learning
             m._buffer = list(f.scans())
         return m
 

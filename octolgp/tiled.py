@@ -28,15 +28,18 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.learning import learn_hyperparameters
 from octolgp.online import OnlineMap, ScanUpdate, fit_leaf
+from octolgp.plsc import occupancy_probability
 from octolgp.scan import Scan
 from octolgp.store import Leaf
 from octolgp.training import check_scans
 
-__all__ = ["TASK_ITEMS", "build_tiled", "fit_leaves"]
+__all__ = ["TASK_ITEMS", "build_tiled", "build_voxelized", "fit_leaves"]
 
 CHUNK_BEAMS = 60_000
 """Beams per chunk when gathering a whole log's evidence into leaves."""
@@ -231,20 +234,17 @@ def _fitted(
             yield futures.pop(fut), fut.result()
 
 
-def _fill(
-    m: OnlineMap,
-    scans: list[Scan],
-    scheduler: Any,
-    workers: int | None,
-    task_items: int,
-    stats: dict[str, float],
-    progress: Callable[[int, int], None] | None = None,
-) -> None:
-    """Gather all evidence, fit every leaf (threads or Dask), store and commit."""
+def _gather_all(
+    m: OnlineMap, scans: list[Scan], stats: dict[str, float]
+) -> tuple[list[int], list[Leaf], int]:
+    """Every scan's evidence into the map's leaves (stored unfitted), chunk by chunk.
+
+    Returns the keys of the leaves that gained evidence (in first-touch order), those
+    leaves, and the number of items added.
+    """
     from octolgp.online import _blas_controller
     from octolgp.training import make_training_data
 
-    t = time.perf_counter()
     for s in scans:
         m._check_scan(s)
     stats["training"] = stats["assign"] = 0.0
@@ -269,8 +269,95 @@ def _fill(
         stats["assign"] += time.perf_counter() - t
     keys = list(first_touch)
     gathered = [m.store.peek(k) for k in keys]
-    leaves = [g for g in gathered if g is not None]
-    del gathered
+    return keys, [g for g in gathered if g is not None], new_items
+
+
+def build_voxelized(
+    scans: Iterable[Scan],
+    config: MapConfig,
+    method: str,
+    *,
+    path: str | Path | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> OnlineMap:
+    """A map file of another batch method: its values at the voxel centres of every leaf.
+
+    ``build_map(scans, config, method)`` (``"gp"``, ``"mgp"`` or ``"ogm"``) is built in
+    memory, then evaluated at the voxel centres of every leaf the scans bring evidence to
+    (the leaves of :func:`build_tiled`); the map file stores those values, so ``query``,
+    ``export`` and ``OnlineMap.open`` read it like any map. GP methods store their latent
+    mean and variance (and PLSC's P); the grid stores its P (mean 0 and variance 1 as
+    placeholders, no hyperparameters, so queries read voxel values, not interpolations).
+    Scans inserted later refit the leaves they touch with the local GPs.
+
+    Raises
+    ------
+    OctolgpError
+        On an unknown method (use :func:`build_tiled` for ``"lgp"``) or bad input.
+    """
+    from octolgp.build import build_map
+
+    if method not in ("gp", "mgp", "ogm"):
+        raise OctolgpError(f"method must be one of gp, mgp, ogm here, got {method!r}")
+    scan_list = check_scans(scans, config.dim)
+    if not scan_list:
+        raise OctolgpError("scans: no scans to build from")
+    gmap = build_map(scan_list, config, method=method)
+    hp = getattr(gmap, "hyperparameters", None)
+    m = OnlineMap(dataclasses.replace(config, hyperparameters=hp), path)
+    try:
+        stats: dict[str, float] = {}
+        keys, leaves, new_items = _gather_all(m, scan_list, stats)
+        t = time.perf_counter()
+        for lo in range(0, len(keys), 512):  # batches of leaves
+            batch = keys[lo : lo + 512]
+            for key, leaf in zip(batch, leaves[lo : lo + 512], strict=True):
+                centres = m.grid.voxel_centres(leaf.index)
+                if hp is None:
+                    prob = np.asarray(gmap.occupancy(centres), dtype=np.float64)
+                    mean, var = np.zeros_like(prob), np.ones_like(prob)
+                else:
+                    mean, var = gmap.latent(centres)
+                    prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+                fitted = dataclasses.replace(
+                    leaf,
+                    mean=mean.astype(np.float32),
+                    var=var.astype(np.float32),
+                    prob=prob.astype(np.float32),
+                    refits=1,
+                    touched=len(scan_list),
+                )
+                m.store.put(key, fitted)
+            m._commit(batch, [])
+            if progress is not None:
+                progress(min(lo + 512, len(keys)), len(keys))
+        stats["fit"] = time.perf_counter() - t
+        m.n_scans = len(scan_list)
+        m._commit([], list(enumerate(scan_list, start=1)))
+        stats["store"] = 0.0
+        m.build_stats = {
+            **stats,
+            "leaves": float(len(keys)),
+            "items": float(new_items),
+            "voxels": float(len(keys) * m.grid.voxels_per_leaf),
+        }
+    except BaseException:
+        m.close()
+        raise
+    return m
+
+
+def _fill(
+    m: OnlineMap,
+    scans: list[Scan],
+    scheduler: Any,
+    workers: int | None,
+    task_items: int,
+    stats: dict[str, float],
+    progress: Callable[[int, int], None] | None = None,
+) -> None:
+    """Gather all evidence, fit every leaf (threads or Dask), store and commit."""
+    keys, leaves, new_items = _gather_all(m, scans, stats)
     t = time.perf_counter()
     index = len(scans)
     pruned = done = 0

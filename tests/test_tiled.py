@@ -133,3 +133,18 @@ def test_cli_build_writes_the_map_and_refuses_to_overwrite(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert "already exists" in err[0]
+
+
+def test_build_method_ogm_stores_the_grid_at_the_voxel_centres(scans: list, tmp_path: Path) -> None:
+    out = tmp_path / "g.octolgp"
+    argv = ["build", str(INTEL20), "--out", str(out), "--resolution", "0.2", "--quiet"]
+    assert main([*argv, "--method", "ogm"]) == 0
+    grid = build_map(scans, MapConfig(dim=2, resolution=0.2), method="ogm")
+    with OnlineMap.open(out) as m:
+        assert m.n_scans == len(scans)
+        centres, prob = m.voxels()
+        expected = grid.occupancy(centres).astype(np.float32)
+        assert np.array_equal(prob.astype(np.float32), expected)
+        # no hyperparameters: queries read the voxel holding the point
+        assert np.array_equal(m.occupancy(centres[:50]), prob[:50])
+    assert main([*argv, "--overwrite", "--method", "ogm", "--scheduler", "local"]) == 2
