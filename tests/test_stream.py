@@ -192,7 +192,12 @@ def test_stream_over_loopback_grpc(tmp_path: Path) -> None:
         time.sleep(0.5)
     finally:
         server.send_signal(signal.SIGINT)
-        server.wait(timeout=20)
+        try:
+            server.wait(timeout=60)  # the receiver finishes writing, then exits
+        except subprocess.TimeoutExpired:
+            server.kill()  # never leave it running into the next test
+            server.wait()
+            pytest.fail("the rerun receiver did not exit within 60 s of SIGINT")
     back = list(read_rrd(received))
     assert len(back) == len(scans)
     for a, b in zip(scans, back, strict=True):
