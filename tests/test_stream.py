@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import os
 import shutil
 import signal
 import socket
@@ -174,6 +175,9 @@ def test_stream_over_loopback_grpc(tmp_path: Path) -> None:
         ],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
+        # its own process group: the `rerun` entry point is a Python wrapper around the
+        # native viewer binary, and a signal must reach both
+        start_new_session=True,
     )
     try:
         deadline = time.monotonic() + 20
@@ -191,11 +195,11 @@ def test_stream_over_loopback_grpc(tmp_path: Path) -> None:
         rec.disconnect()
         time.sleep(0.5)
     finally:
-        server.send_signal(signal.SIGINT)
+        os.killpg(server.pid, signal.SIGINT)
         try:
             server.wait(timeout=60)  # the receiver finishes writing, then exits
         except subprocess.TimeoutExpired:
-            server.kill()  # never leave it running into the next test
+            os.killpg(server.pid, signal.SIGKILL)  # never leak it into the next test
             server.wait()
             pytest.fail("the rerun receiver did not exit within 60 s of SIGINT")
     back = list(read_rrd(received))
