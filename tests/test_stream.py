@@ -156,6 +156,16 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def _default_signals() -> None:
+    """In the receiver (before exec): default SIGINT handling and no blocked signals.
+
+    Both are inherited: earlier tests in the same pytest process (threads of the Rust
+    SDK, Dask) can leave SIGINT ignored or blocked, and the receiver then never exits.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_SETMASK, [])
+
+
 def test_stream_over_loopback_grpc(tmp_path: Path) -> None:
     binary = shutil.which("rerun") or str(Path(sys.executable).with_name("rerun"))
     if not Path(binary).exists():
@@ -178,6 +188,7 @@ def test_stream_over_loopback_grpc(tmp_path: Path) -> None:
         # its own process group: the `rerun` entry point is a Python wrapper around the
         # native viewer binary, and a signal must reach both
         start_new_session=True,
+        preexec_fn=_default_signals,
     )
     try:
         deadline = time.monotonic() + 20
