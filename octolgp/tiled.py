@@ -57,6 +57,14 @@ def fit_leaves(leaves: list[Leaf], config: MapConfig, hp: Hyperparameters) -> li
         return [fit_leaf(leaf, config, hp) for leaf in leaves]
 
 
+def _scan_list(scans: Iterable[Scan], config: MapConfig) -> list[Scan]:
+    """The scans as a checked list of dimension ``config.dim``; refuse none at all."""
+    scan_list = check_scans(scans, config.dim)
+    if not scan_list:
+        raise OctolgpError("scans: no scans to build from")
+    return scan_list
+
+
 def _chunks(scans: list[Scan], beams: int) -> Iterator[list[Scan]]:
     """Consecutive runs of scans holding about ``beams`` beams each (at least one scan)."""
     chunk: list[Scan] = []
@@ -180,9 +188,7 @@ def build_tiled(
         raise OctolgpError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
     if isinstance(task_items, bool) or not isinstance(task_items, int) or task_items < 1:
         raise OctolgpError(f"task_items must be an integer >= 1, got {task_items!r}")
-    scan_list = check_scans(scans, config.dim)
-    if not scan_list:
-        raise OctolgpError("scans: no scans to build from")
+    scan_list = _scan_list(scans, config)
     stats: dict[str, float] = {}
     t0 = time.perf_counter()
     hp = config.hyperparameters
@@ -198,7 +204,13 @@ def build_tiled(
     # every leaf is fitted once here: no kernel blocks to reuse, so no cache to fill
     cache, m.kernel_cache = m.kernel_cache, None
     try:
-        _fill(m, scan_list, scheduler, workers, task_items, stats, progress)
+        _fill(
+            m,
+            scan_list,
+            lambda keys, leaves: _fitted(m, keys, leaves, scheduler, workers, task_items),
+            stats,
+            progress,
+        )
     except BaseException:
         m.close()
         raise
@@ -299,19 +311,15 @@ def build_voxelized(
 
     if method not in ("gp", "mgp", "ogm"):
         raise OctolgpError(f"method must be one of gp, mgp, ogm here, got {method!r}")
-    scan_list = check_scans(scans, config.dim)
-    if not scan_list:
-        raise OctolgpError("scans: no scans to build from")
+    scan_list = _scan_list(scans, config)
     gmap = build_map(scan_list, config, method=method)
     hp = getattr(gmap, "hyperparameters", None)
     m = OnlineMap(dataclasses.replace(config, hyperparameters=hp), path)
-    try:
-        stats: dict[str, float] = {}
-        keys, leaves, new_items = _gather_all(m, scan_list, stats)
-        t = time.perf_counter()
+
+    def values(keys: list[int], leaves: list[Leaf]) -> Iterator[tuple[list[int], list[Leaf]]]:
         for lo in range(0, len(keys), 512):  # batches of leaves
-            batch = keys[lo : lo + 512]
-            for key, leaf in zip(batch, leaves[lo : lo + 512], strict=True):
+            out = []
+            for leaf in leaves[lo : lo + 512]:  # one iteration per leaf
                 centres = m.grid.voxel_centres(leaf.index)
                 if hp is None:
                     prob = np.asarray(gmap.occupancy(centres), dtype=np.float64)
@@ -319,49 +327,42 @@ def build_voxelized(
                 else:
                     mean, var = gmap.latent(centres)
                     prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
-                fitted = dataclasses.replace(
-                    leaf,
-                    mean=mean.astype(np.float32),
-                    var=var.astype(np.float32),
-                    prob=prob.astype(np.float32),
-                    refits=1,
-                    touched=len(scan_list),
+                out.append(
+                    dataclasses.replace(
+                        leaf,
+                        mean=mean.astype(np.float32),
+                        var=var.astype(np.float32),
+                        prob=prob.astype(np.float32),
+                        refits=1,
+                    )
                 )
-                m.store.put(key, fitted)
-            m._commit(batch, [])
-            if progress is not None:
-                progress(min(lo + 512, len(keys)), len(keys))
-        stats["fit"] = time.perf_counter() - t
-        m.n_scans = len(scan_list)
-        m._commit([], list(enumerate(scan_list, start=1)))
-        stats["store"] = 0.0
-        m.build_stats = {
-            **stats,
-            "leaves": float(len(keys)),
-            "items": float(new_items),
-            "voxels": float(len(keys) * m.grid.voxels_per_leaf),
-        }
+            yield keys[lo : lo + 512], out
+
+    try:
+        _fill(m, scan_list, values, {}, progress)
     except BaseException:
         m.close()
         raise
     return m
 
 
+Fitter = Callable[[list[int], list[Leaf]], Iterator[tuple[list[int], list[Leaf]]]]
+"""Leaves with evidence -> the same leaves with voxel values, batch by batch."""
+
+
 def _fill(
     m: OnlineMap,
     scans: list[Scan],
-    scheduler: Any,
-    workers: int | None,
-    task_items: int,
+    fitter: Fitter,
     stats: dict[str, float],
     progress: Callable[[int, int], None] | None = None,
 ) -> None:
-    """Gather all evidence, fit every leaf (threads or Dask), store and commit."""
+    """Gather all evidence, give every leaf its values (``fitter``), store and commit."""
     keys, leaves, new_items = _gather_all(m, scans, stats)
     t = time.perf_counter()
     index = len(scans)
     pruned = done = 0
-    for group_k, group_l in _fitted(m, keys, leaves, scheduler, workers, task_items):
+    for group_k, group_l in fitter(keys, leaves):
         for key, leaf in zip(group_k, group_l, strict=True):  # one iteration per leaf
             leaf.touched = index
             pruned += leaf.pruned
