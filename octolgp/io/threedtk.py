@@ -20,20 +20,16 @@ bisected down to a few lines to name the malformed one, so only bad input is par
 
 from __future__ import annotations
 
-import bz2
-import gzip
-import lzma
 import math
 import re
 import warnings
-import zlib
 from collections.abc import Generator
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io.pointcloud import READ_ERRORS, open_text
 from octolgp.io.threedtk_pose import CM, LH_TO_RH, read_frames, read_pose
 from octolgp.scan import FloatArray, Scan
 
@@ -50,7 +46,6 @@ _POINT_FILE = re.compile(r"(.+)\.3d(?:\.(?:xz|gz|bz2))?", re.IGNORECASE)
 _LEGACY_HEADER = re.compile(r"\s*\d+\s*x\s*\d+\s*")
 _CHUNK_BYTES = 1 << 22  # about this many bytes of lines per np.loadtxt call
 _DIAGNOSE_LINES = 32  # a failing block this small is checked line by line
-_READ_ERRORS = (OSError, EOFError, lzma.LZMAError, zlib.error)
 
 
 def looks_like_3dtk(path: str | Path) -> bool:
@@ -65,19 +60,6 @@ def _stem(path: Path) -> str:
     """``scan001`` for ``scan001.3d.xz``: the name its ``.pose``/``.frames`` share."""
     match = _POINT_FILE.fullmatch(path.name)
     return match[1] if match else path.name
-
-
-def _open_text(path: Path) -> IO[str]:
-    """Open a point file as text, decompressing by its magic bytes."""
-    with open(path, "rb") as fh:
-        magic = fh.read(6)
-    if magic.startswith(b"\xfd7zXZ\x00"):
-        return lzma.open(path, "rt", encoding="utf-8", errors="replace")
-    if magic.startswith(b"\x1f\x8b"):
-        return gzip.open(path, "rt", encoding="utf-8", errors="replace")
-    if magic.startswith(b"BZh"):
-        return bz2.open(path, "rt", encoding="utf-8", errors="replace")
-    return open(path, encoding="utf-8", errors="replace")
 
 
 def _parse_block(lines: list[str]) -> FloatArray | None:
@@ -252,13 +234,13 @@ class ThreeDTKReader:
         blocks: list[FloatArray] = []
         line_no = 0
         try:
-            with _open_text(path) as fh:
+            with open_text(path) as fh:
                 while chunk := fh.readlines(_CHUNK_BYTES):
                     if line_no == 0 and _LEGACY_HEADER.fullmatch(chunk[0]):
                         chunk[0] = "\n"  # pre-2019 "360 x 225" header
                     blocks += self._parse(chunk, path, line_no + 1)
                     line_no += len(chunk)
-        except _READ_ERRORS as exc:
+        except READ_ERRORS as exc:
             raise OctolgpError(f"3DTK scan {path}:{line_no + 1}: unreadable: {exc}") from None
         return np.concatenate(blocks) if blocks else np.empty((0, 3))
 
