@@ -39,9 +39,11 @@ from octolgp.io.pointcloud import (
     CHUNK_POINTS,
     READ_ERRORS,
     CloudReader,
+    has_cloud_files,
     list_cloud_files,
     parse_ascii,
     read_exact_lines,
+    read_header,
     rotation_from_quaternion,
 )
 from octolgp.scan import FloatArray, Scan
@@ -201,20 +203,14 @@ def read_pcd_header(path: str | Path) -> PcdHeader:
     OctolgpError
         On a malformed header (``PCD path: header...: why``) or an unreadable file.
     """
-    try:
-        with open(path, "rb") as fh:
-            return _parse_header(fh)
-    except OSError as exc:
-        raise OctolgpError(f"PCD {path}: unreadable: {exc}") from None
-    except OctolgpError as exc:
-        raise OctolgpError(f"PCD {path}:{exc}") from None
+    return read_header(path, _parse_header, "PCD")
 
 
 def looks_like_pcd(path: str | Path) -> bool:
     """Tell whether ``path`` is a PCD file (a valid header) or a directory of ``*.pcd`` files."""
     p = Path(path)
     if p.is_dir():
-        return any(f.suffix.lower() == ".pcd" and f.is_file() for f in p.iterdir())
+        return has_cloud_files(p, ".pcd")
     if not p.is_file():
         return False
     try:
@@ -323,13 +319,7 @@ class PcdReader(CloudReader):
         self.files = list_cloud_files(self.path, ".pcd", "PCD")
 
     def _generate(self) -> Generator[Scan, None, None]:
-        for path in self.files:
-            try:
-                scan = self._read_file(path)
-            except OctolgpError as exc:
-                self.bad_scan(exc)
-                continue
-            yield scan
+        yield from self._read_files(self.files)
 
     def _read_file(self, path: Path) -> Scan:
         header = read_pcd_header(path)

@@ -32,9 +32,11 @@ from octolgp.io.pointcloud import (
     CHUNK_POINTS,
     READ_ERRORS,
     CloudReader,
+    has_cloud_files,
     list_cloud_files,
     parse_ascii,
     read_exact_lines,
+    read_header,
 )
 from octolgp.scan import FloatArray, Scan
 
@@ -152,20 +154,14 @@ def read_ply_header(path: str | Path) -> PlyHeader:
     OctolgpError
         On a malformed header (``PLY path:line: why``) or an unreadable file.
     """
-    try:
-        with open(path, "rb") as fh:
-            return _parse_header(fh)
-    except OSError as exc:
-        raise OctolgpError(f"PLY {path}: unreadable: {exc}") from None
-    except OctolgpError as exc:
-        raise OctolgpError(f"PLY {path}:{exc}") from None
+    return read_header(path, _parse_header, "PLY")
 
 
 def looks_like_ply(path: str | Path) -> bool:
     """Tell whether ``path`` starts with the ``ply`` magic line or is a directory of ``*.ply``."""
     p = Path(path)
     if p.is_dir():
-        return any(f.suffix.lower() == ".ply" and f.is_file() for f in p.iterdir())
+        return has_cloud_files(p, ".ply")
     try:
         with open(p, "rb") as fh:
             return fh.read(4) in (b"ply\n", b"ply\r")
@@ -245,13 +241,7 @@ class PlyReader(CloudReader):
         self.files = list_cloud_files(self.path, ".ply", "PLY")
 
     def _generate(self) -> Generator[Scan, None, None]:
-        for path in self.files:
-            try:
-                scan = self._read_file(path)
-            except OctolgpError as exc:
-                self.bad_scan(exc)
-                continue
-            yield scan
+        yield from self._read_files(self.files)
 
     def _read_file(self, path: Path) -> Scan:
         header = read_ply_header(path)

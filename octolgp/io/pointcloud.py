@@ -23,9 +23,9 @@ import lzma
 import math
 import warnings
 import zlib
-from collections.abc import Generator, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from pathlib import Path
-from typing import IO, ClassVar
+from typing import IO, ClassVar, TypeVar
 
 import numpy as np
 
@@ -34,14 +34,18 @@ from octolgp.scan import FloatArray, Scan
 
 __all__ = [
     "CloudReader",
+    "has_cloud_files",
     "list_cloud_files",
     "open_text",
     "parse_ascii",
     "quaternion_from_rotation",
     "read_exact_lines",
+    "read_header",
     "rotation_from_quaternion",
     "rotation_from_rpy",
 ]
+
+H = TypeVar("H")
 
 CHUNK_LINES = 1 << 16
 """Text lines parsed per :func:`numpy.loadtxt` call."""
@@ -62,6 +66,29 @@ def open_text(path: Path) -> IO[str]:
     if magic.startswith(b"BZh"):
         return bz2.open(path, "rt", encoding="utf-8", errors="replace")
     return open(path, encoding="utf-8", errors="replace")
+
+
+def has_cloud_files(path: Path, suffix: str) -> bool:
+    """Whether ``path`` is a directory holding at least one ``*suffix`` file (any case)."""
+    return path.is_dir() and any(f.suffix.lower() == suffix and f.is_file() for f in path.iterdir())
+
+
+def read_header(path: str | Path, parse: Callable[[IO[bytes]], H], what: str) -> H:
+    """Parse a file's header with ``parse``; errors name the format ``what`` and the file.
+
+    Raises
+    ------
+    OctolgpError
+        On an unreadable file (``what path: unreadable: ...``) or a malformed header
+        (``what path:<where parse says>``).
+    """
+    try:
+        with open(path, "rb") as fh:
+            return parse(fh)
+    except OSError as exc:
+        raise OctolgpError(f"{what} {path}: unreadable: {exc}") from None
+    except OctolgpError as exc:
+        raise OctolgpError(f"{what} {path}:{exc}") from None
 
 
 def list_cloud_files(path: Path, suffix: str, what: str) -> tuple[Path, ...]:
@@ -320,6 +347,20 @@ class CloudReader:
             raise exc
         self.skipped += 1
         self.bad_scans.append(str(exc))
+
+    def _read_files(self, files: Iterable[Path]) -> Generator[Scan, None, None]:
+        """One scan per file (:meth:`_read_file`); a file that fails goes to :meth:`bad_scan`."""
+        for path in files:  # one iteration per file
+            try:
+                scan = self._read_file(path)
+            except OctolgpError as exc:
+                self.bad_scan(exc)
+                continue
+            yield scan
+
+    def _read_file(self, path: Path) -> Scan:  # pragma: no cover - per-file readers override
+        """Read one file as one scan (readers of one scan per file override this)."""
+        raise NotImplementedError
 
     def make_scan(
         self,
