@@ -151,13 +151,12 @@ class ScanDatReader(CloudReader):
     """
 
     kind = "OctoMap scan.dat"
+    single_file = True
 
     def __init__(
         self, path: str | Path, *, skip_bad: bool = False, max_range: float | None = None
     ) -> None:
         super().__init__(path, skip_bad=skip_bad, max_range=max_range)
-        if not self.path.is_file():
-            raise OctolgpError(f"{self.kind} {str(self.path)!r} is not a file")
 
     def _node(self, line: str, line_no: int) -> tuple[FloatArray, FloatArray] | None:
         """The ``(t, R)`` of a NODE line, or ``None`` if malformed and skipped."""
@@ -260,13 +259,12 @@ class GraphReader(CloudReader):
     """
 
     kind = "OctoMap graph"
+    single_file = True
 
     def __init__(
         self, path: str | Path, *, skip_bad: bool = False, max_range: float | None = None
     ) -> None:
         super().__init__(path, skip_bad=skip_bad, max_range=max_range)
-        if not self.path.is_file():
-            raise OctolgpError(f"{self.kind} {str(self.path)!r} is not a file")
         self.node_ids: list[int] = []
 
     def _fail(self, fh: IO[bytes], why: str) -> _GraphBrokenError:

@@ -300,11 +300,15 @@ class CloudReader:
     """
 
     kind: ClassVar[str] = "point cloud"
+    single_file: ClassVar[bool] = False
+    """Readers of one file (not a directory) set this: a directory is then refused."""
 
     def __init__(self, path: str | Path, *, skip_bad: bool, max_range: float | None) -> None:
         self.path = Path(path)
         if not self.path.exists():
             raise MapFileNotFound(f"{self.kind} {str(self.path)!r} does not exist")
+        if self.single_file and not self.path.is_file():
+            raise OctolgpError(f"{self.kind} {str(self.path)!r} is not a file")
         if max_range is not None and (
             isinstance(max_range, bool)
             or not isinstance(max_range, int | float | np.floating | np.integer)
