@@ -394,6 +394,19 @@ def _positive_float(text: str) -> float:
     return value
 
 
+def _scan_log_options(p: argparse.ArgumentParser) -> None:
+    """The scan log argument and how to read it, shared by run, build and eval."""
+    p.add_argument(
+        "scans",
+        help="scan log: npz, CARMEN .log/.clf[.gz], 3DTK folder, .rrd, ROS bag, PCD, PLY, "
+        "OctoMap scan.dat/.graph",
+    )
+    p.add_argument("--format", default=None, help="scan log format (default: guessed)")
+    p.add_argument(
+        "--skip-bad", action="store_true", help="skip malformed lines/messages and count them"
+    )
+
+
 def _mapping_options(p: argparse.ArgumentParser) -> None:
     """Options shared by the subcommands that map scans online."""
     p.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
@@ -452,15 +465,7 @@ def make_parser() -> argparse.ArgumentParser:
     sim.set_defaults(func=_cmd_simulate)
 
     run = sub.add_parser("run", help="map a scan log online, scan by scan")
-    run.add_argument(
-        "scans",
-        help="scan log: npz, CARMEN .log/.clf[.gz], 3DTK folder, .rrd, ROS bag, PCD, PLY, "
-        "OctoMap scan.dat/.graph",
-    )
-    run.add_argument("--format", default=None, help="scan log format (default: guessed)")
-    run.add_argument(
-        "--skip-bad", action="store_true", help="skip malformed lines/messages and count them"
-    )
+    _scan_log_options(run)
     _mapping_options(run)
     run.set_defaults(func=_cmd_run)
 
@@ -514,9 +519,8 @@ def make_parser() -> argparse.ArgumentParser:
             "(--scheduler local for an embedded LocalCluster, or tcp://HOST:PORT)."
         ),
     )
-    bld.add_argument("scans", help="scan log, any format run reads")
+    _scan_log_options(bld)
     bld.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
-    bld.add_argument("--format", default=None, help="scan log format (default: guessed)")
     bld.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
     bld.add_argument(
         "--method",
@@ -543,9 +547,6 @@ def make_parser() -> argparse.ArgumentParser:
     bld.add_argument(
         "--memory-budget", type=_positive_float, default=None, metavar="MB", help="RAM for leaves"
     )
-    bld.add_argument(
-        "--skip-bad", action="store_true", help="skip malformed lines/messages and count them"
-    )
     bld.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     bld.add_argument("--quiet", action="store_true", help="no progress messages")
     bld.set_defaults(func=_cmd_build)
@@ -559,11 +560,7 @@ def make_parser() -> argparse.ArgumentParser:
             "and report ROC AUC and the unknown fraction (mean ± std over seeds)."
         ),
     )
-    ev.add_argument("scans", help="scan log, any format run reads")
-    ev.add_argument("--format", default=None, help="scan log format (default: guessed)")
-    ev.add_argument(
-        "--skip-bad", action="store_true", help="skip malformed lines/messages and count them"
-    )
+    _scan_log_options(ev)
     ev.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
     ev.add_argument("--seeds", type=_positive_int, default=5, help="random splits")
     ev.add_argument("--fraction", type=_positive_float, default=0.1, help="held-out share")
