@@ -176,30 +176,46 @@ class Mission3D:
         gap = np.maximum(np.maximum(self.boxes[ids, :2] - p, p - self.boxes[ids, 3:5]), 0.0)
         return np.asarray(ids[(gap**2).sum(axis=1) <= r * r], dtype=np.intp)
 
+    def cast(
+        self,
+        origin: ArrayLike,
+        yaw: float = 0.0,
+        rng: np.random.Generator | None = None,
+        stamp: float | None = None,
+    ) -> Scan:
+        """A scan of the lidar's beam pattern from ``origin`` (metres) turned by ``yaw`` (rad).
+
+        Rays are cast against the ground plane ``z = 0`` analytically, then the nearby boxes
+        (slab method). With ``rng`` the returns get Gaussian range noise of the mission's
+        ``range_noise``; without, they lie exactly on the surfaces. No-returns end at exactly
+        ``max_range``.
+        """
+        origin = np.asarray(origin, dtype=np.float64)
+        c, s = np.cos(yaw), np.sin(yaw)
+        u = self._directions
+        dirs = np.column_stack([c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1], u[:, 2]])
+        with np.errstate(divide="ignore"):
+            t = np.where(dirs[:, 2] < 0.0, -origin[2] / dirs[:, 2], np.inf)
+        ids = self.boxes_near(origin)
+        if ids.size:
+            origins = np.broadcast_to(origin, dirs.shape)
+            t = np.minimum(t, ray_box_distance(origins, dirs, self.boxes[ids]))
+        hit = t < self.max_range
+        if rng is not None:
+            t = t + rng.normal(0.0, self._range_noise, t.shape)
+        ranges = np.where(hit, np.clip(t, 0.0, self.max_range - 1e-3), self.max_range)
+        points = origin + ranges[:, None] * dirs
+        return Scan(origin, points, self.max_range, stamp=stamp)
+
     def scan(self, index: int) -> Scan:
         """Scan ``index`` in ``[0, n_scans)``, cast from ``route(index * spacing)``; else raise."""
         if not (isinstance(index, int | np.integer) and 0 <= index < self.n_scans):
             raise OctolgpError(f"Mission3D.scan: index must be in [0, {self.n_scans}), got {index}")
         x, y, z, yaw = self.route(index * self.spacing)
-        c, s = np.cos(yaw), np.sin(yaw)
-        u = self._directions
-        dirs = np.column_stack([c * u[:, 0] - s * u[:, 1], s * u[:, 0] + c * u[:, 1], u[:, 2]])
-        origin = np.array([x, y, z])
-        # Ray casting: the ground plane z = 0 analytically, then the nearby boxes (slab method).
-        with np.errstate(divide="ignore"):
-            t = np.where(dirs[:, 2] < 0.0, -z / dirs[:, 2], np.inf)
-        ids = self.boxes_near(origin)
-        if ids.size:
-            origins = np.broadcast_to(origin, dirs.shape)
-            t = np.minimum(t, ray_box_distance(origins, dirs, self.boxes[ids]))
-        # Range noise on returns; no-returns at exactly max_range.
-        hit = t < self.max_range
+        rng = None
         if self._range_noise > 0:
             rng = np.random.default_rng([self._seed, 1, int(index)])
-            t = t + rng.normal(0.0, self._range_noise, t.shape)
-        ranges = np.where(hit, np.clip(t, 0.0, self.max_range - 1e-3), self.max_range)
-        points = origin + ranges[:, None] * dirs
-        return Scan(origin, points, self.max_range, stamp=index * _SCAN_PERIOD)
+        return self.cast(np.array([x, y, z]), yaw, rng, stamp=index * _SCAN_PERIOD)
 
     def scans(self) -> Iterator[Scan]:
         """Yield the ``n_scans`` scans in route order, one at a time."""

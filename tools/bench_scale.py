@@ -72,7 +72,7 @@ def child(length: float, jobs: int, hp_json: str, grid: bool) -> dict[str, objec
     n_items = _items(scans)
     # test scans half-way between training scans, spread over the loop
     pick = np.linspace(0, mis.n_scans - 1, min(TEST_SCANS, mis.n_scans)).round().astype(int)
-    test = [_cast(mis, np.asarray(mis.route(k * mis.spacing + 0.5))[:3]) for k in np.unique(pick)]
+    test = [mis.cast(np.asarray(mis.route(k * mis.spacing + 0.5))[:3]) for k in np.unique(pick)]
     # Occupied test points: 5 cm beyond each (noise-free) hit, inside the surface; free:
     # points drawn along the beams up to one voxel (0.2 m) before the hit. Both labelled
     # by the scene's exact geometry (a point exactly on a surface would be a coin flip).
@@ -114,23 +114,6 @@ def child(length: float, jobs: int, hp_json: str, grid: bool) -> dict[str, objec
         out["grid_seconds"] = time.perf_counter() - t0
         out["grid_auc"] = auc(labels, g.occupancy(pts))
     return out
-
-
-def _cast(mis, origin: np.ndarray):
-    """A scan of the mission's beam pattern from ``origin`` (yaw 0), ground truth geometry."""
-    from octolgp.scan import Scan
-    from octolgp.simulate import ray_box_distance
-
-    dirs = mis._directions
-    with np.errstate(divide="ignore"):
-        t = np.where(dirs[:, 2] < 0.0, -origin[2] / dirs[:, 2], np.inf)
-    ids = mis.boxes_near(origin)
-    if ids.size:
-        t = np.minimum(
-            t, ray_box_distance(np.broadcast_to(origin, dirs.shape), dirs, mis.boxes[ids])
-        )
-    ranges = np.where(t < mis.max_range, np.clip(t, 0.0, mis.max_range - 1e-3), mis.max_range)
-    return Scan(origin, origin + ranges[:, None] * dirs, mis.max_range)
 
 
 def _learn() -> str:
