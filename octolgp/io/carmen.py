@@ -39,6 +39,7 @@ from typing import IO
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io.base import ScanStream
 from octolgp.scan import FloatArray, Scan
 
 __all__ = ["NO_RETURN_MARGIN", "CarmenReader", "beam_angles", "looks_like_carmen", "read_carmen"]
@@ -169,7 +170,7 @@ def looks_like_carmen(path: str | Path) -> bool:
     return True
 
 
-class CarmenReader:
+class CarmenReader(ScanStream):
     """A one-pass iterator of :class:`~octolgp.scan.Scan` over a CARMEN log.
 
     Parameters
@@ -216,16 +217,6 @@ class CarmenReader:
         self.bad_lines: list[int] = []
         self.no_return: float | None = max_range
         self._scans = self._generate()
-
-    def __iter__(self) -> CarmenReader:
-        return self
-
-    def __next__(self) -> Scan:
-        return next(self._scans)
-
-    def close(self) -> None:
-        """Close the underlying file."""
-        self._scans.close()
 
     def _lines(self) -> Generator[tuple[int, str], None, None]:
         """Yield ``(line_number, line)``; a read error becomes :class:`OctolgpError`."""

@@ -30,6 +30,7 @@ from typing import IO, ClassVar, TypeVar
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io.base import ScanStream
 from octolgp.scan import FloatArray, Scan
 
 __all__ = [
@@ -275,7 +276,7 @@ def read_exact_lines(
         line_no += len(chunk)
 
 
-class CloudReader:
+class CloudReader(ScanStream):
     """Base of the point-cloud readers: a one-pass iterator of :class:`~octolgp.scan.Scan`.
 
     Parameters
@@ -323,16 +324,6 @@ class CloudReader:
         self.bad_lines: list[tuple[Path, int]] = []
         self.bad_scans: list[str] = []
         self._scans = self._generate()
-
-    def __iter__(self) -> CloudReader:
-        return self
-
-    def __next__(self) -> Scan:
-        return next(self._scans)
-
-    def close(self) -> None:
-        """Close the file being read."""
-        self._scans.close()
 
     def _generate(self) -> Generator[Scan, None, None]:  # pragma: no cover - abstract
         raise NotImplementedError

@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io.base import ScanStream
 from octolgp.io.carmen import NO_RETURN_MARGIN
 from octolgp.scan import FloatArray, Scan
 
@@ -343,7 +344,7 @@ def _pose_of(msg: Any, msgtype: str) -> FloatArray:
     return _transform(pose.position, pose.orientation)
 
 
-class RosbagReader:
+class RosbagReader(ScanStream):
     """A one-pass iterator of :class:`~octolgp.scan.Scan` over a ROS 1 or ROS 2 bag.
 
     Parameters
@@ -440,16 +441,6 @@ class RosbagReader:
         except Exception as exc:  # rosbags raises many types on a corrupt bag
             raise OctolgpError(f"ROS bag {self.path}: unreadable: {_why(exc)}") from None
         self._scans = self._generate()
-
-    def __iter__(self) -> RosbagReader:
-        return self
-
-    def __next__(self) -> Scan:
-        return next(self._scans)
-
-    def close(self) -> None:
-        """Close the bag."""
-        self._scans.close()
 
     def _open(self) -> Any:
         """An :class:`rosbags.highlevel.AnyReader` on the bag (not yet opened)."""

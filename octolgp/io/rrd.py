@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io.base import ScanStream
 from octolgp.scan import FloatArray, Scan
 
 if TYPE_CHECKING:
@@ -436,7 +437,7 @@ def _chain(entity: str) -> list[str]:
 # --------------------------------------------------------------------------- reader
 
 
-class RrdScanReader:
+class RrdScanReader(ScanStream):
     """A one-pass iterator of :class:`~octolgp.scan.Scan` over a Rerun recording.
 
     The recording is read twice: once at construction (times and poses only, so that every
@@ -811,15 +812,9 @@ class RrdScanReader:
 
     # ---------------------------------------------------------------- iteration (pass 2)
 
-    def __iter__(self) -> RrdScanReader:
-        return self
-
-    def __next__(self) -> Scan:
-        return next(self._scans)
-
     def close(self) -> None:
         """Stop reading and remove any temporary copy."""
-        self._scans.close()
+        super().close()
         if self._tmp is not None:
             self._tmp.cleanup()
 

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io.base import ScanStream
 from octolgp.io.pointcloud import READ_ERRORS, open_text
 from octolgp.io.threedtk_pose import CM, LH_TO_RH, read_frames, read_pose
 from octolgp.scan import FloatArray, Scan
@@ -89,7 +90,7 @@ def _line_error(line: str) -> str:
     return f"cannot parse {line.strip()!r}" if all(map(math.isfinite, values)) else "NaN or inf"
 
 
-class ThreeDTKReader:
+class ThreeDTKReader(ScanStream):
     """A one-pass iterator of :class:`~octolgp.scan.Scan` over 3DTK scans, in scan-number order.
 
     Parameters
@@ -166,16 +167,6 @@ class ThreeDTKReader:
             transforms = [read_pose(s.with_name(s.name + ".pose")) for s in stems]
         self.transforms: FloatArray = np.stack(transforms)
         self._scans = self._generate()
-
-    def __iter__(self) -> ThreeDTKReader:
-        return self
-
-    def __next__(self) -> Scan:
-        return next(self._scans)
-
-    def close(self) -> None:
-        """Close the file being read."""
-        self._scans.close()
 
     def _discover(self, first: int | None, last: int | None) -> tuple[Path, ...]:
         """List the point files numbered ``first..last`` (inclusive), in scan-number order."""
