@@ -28,8 +28,8 @@ import numpy as np
 from tqdm import tqdm
 
 from octolgp import MapConfig, load_scans
-from octolgp.export import write_png
-from octolgp.tiled import build_tiled
+from octolgp.batch.leafmap import build_tiled
+from octolgp.export.octomap import write_png
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"

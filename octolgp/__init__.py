@@ -4,7 +4,7 @@ Kim & Kim, "Continuous Occupancy Maps using Overlapping Local Gaussian Processes
 IROS 2013, made online and OctoMap-style.
 """
 
-from octolgp.build import build_map
+from octolgp.batch.build import build_map
 from octolgp.config import (
     Hyperparameters,
     LearningConfig,
@@ -15,9 +15,9 @@ from octolgp.config import (
     TrainingConfig,
 )
 from octolgp.errors import OctolgpError
+from octolgp.gp.learning import learn_hyperparameters
 from octolgp.io import load_scans
-from octolgp.learning import learn_hyperparameters
-from octolgp.online import OnlineMap, ScanUpdate
+from octolgp.mapping.online import OnlineMap, ScanUpdate
 from octolgp.scan import Scan
 
 __version__ = "0.1.0"

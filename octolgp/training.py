@@ -4,7 +4,7 @@ The free segment runs from the sensor to ``free_margin`` metres short of the hit
 (one resolution by default) so that it does not cancel the hit. A no-return beam
 (length >= ``Scan.max_range``) gives a free segment to ``max_range`` and no hit.
 Segment targets follow the *average* formulation of the integral kernel (see
-:mod:`octolgp.kernels`): the mean of the latent function along a free segment is −1.
+:mod:`octolgp.gp.kernels`): the mean of the latent function along a free segment is −1.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """End to end: ``build_map`` on small ray-cast rooms, scored against ground-truth grids.
 
 The scenes are built here with a slab-method ray caster of their own (not
-:mod:`octolgp.simulate`), so they are an independent check of the pipeline.
+:mod:`octolgp.sim.scenes`), so they are an independent check of the pipeline.
 """
 
 from __future__ import annotations
@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 from sklearn.metrics import roc_auc_score
 
-from octolgp.build import build_map
+from octolgp.batch.build import build_map
 from octolgp.config import Hyperparameters, LearningConfig, MapConfig, PartitionConfig
 from octolgp.errors import OctolgpError
-from octolgp.learning import learn_hyperparameters
+from octolgp.gp.learning import learn_hyperparameters
 from octolgp.scan import Scan
 from octolgp.training import make_training_data
 

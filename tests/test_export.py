@@ -11,8 +11,15 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from octolgp.errors import OctolgpError
-from octolgp.export import decode_bt, read_bt_header, write_bt, write_ot, write_ply, write_png
-from octolgp.keys import key_to_coord
+from octolgp.export.octomap import (
+    decode_bt,
+    read_bt_header,
+    write_bt,
+    write_ot,
+    write_ply,
+    write_png,
+)
+from octolgp.geometry.keys import key_to_coord
 
 RES = 0.1
 CENTER = 1 << 15

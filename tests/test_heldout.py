@@ -288,7 +288,7 @@ def test_evaluate_auc_known_nan_without_both_classes() -> None:
 
 
 def test_heldout_end_to_end_with_ogm() -> None:
-    from octolgp.baselines.ogm import build_ogm
+    from octolgp.batch.ogm import build_ogm
     from octolgp.config import MapConfig
 
     # A 2D room, scanned from a path; the held-out scans' points should score well.

@@ -23,7 +23,7 @@ from octolgp.io import (
 )
 from octolgp.io.carmen import NO_RETURN_MARGIN, beam_angles
 from octolgp.scan import Scan
-from octolgp.simulate import simulate_paper2d
+from octolgp.sim.scenes import simulate_paper2d
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"

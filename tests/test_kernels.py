@@ -19,8 +19,8 @@ from scipy.spatial.distance import cdist
 from scipy.spatial.transform import Rotation
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern
 
-import octolgp.kernels as kernels_module
-from octolgp.kernels import (
+import octolgp.gp.kernels as kernels_module
+from octolgp.gp.kernels import (
     QuadratureSet,
     clenshaw_curtis,
     covariance_with_grad,

@@ -8,7 +8,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from octolgp.errors import OctolgpError
-from octolgp.keys import (
+from octolgp.geometry.keys import (
     addressable_mask,
     addressable_range,
     child_index,

@@ -9,8 +9,9 @@ from sklearn.gaussian_process.kernels import ConstantKernel, Matern
 
 from octolgp.config import Hyperparameters
 from octolgp.errors import OctolgpError
-from octolgp.kernels import QuadratureSet, item_covariance, points_set, quadrature_set
-from octolgp.local_gp import (
+from octolgp.gp.kernels import QuadratureSet, item_covariance, points_set, quadrature_set
+from octolgp.gp.plsc import _neg_loo_log_prob
+from octolgp.gp.regression import (
     fit_local_gp,
     fit_predict,
     log_marginal_likelihood,
@@ -18,7 +19,6 @@ from octolgp.local_gp import (
     loo_predictions,
     predict_latent,
 )
-from octolgp.plsc import _neg_loo_log_prob
 
 HP = Hyperparameters(length_scale=0.7, signal_variance=1.3, noise_variance=0.05)
 
@@ -229,7 +229,7 @@ def test_loo_log_predictive_value_and_gradient(params: np.ndarray, d: int) -> No
 
 def test_not_positive_definite_is_repaired_in_fits_and_minus_inf_in_the_likelihood() -> None:
     """Coincident hits with a negligible noise give a singular ``K + σn² I``."""
-    from octolgp.local_gp import _cholesky
+    from octolgp.gp.regression import _cholesky
 
     X = np.zeros((2, 2))
     y = np.ones(2)
@@ -259,8 +259,8 @@ def test_same_coincident_hits_fit_with_ordinary_noise() -> None:
 
 
 def test_non_positive_definite_kernel_is_repaired_by_jitter_and_counted() -> None:
-    from octolgp.kernels import quadrature_set
-    from octolgp.local_gp import fit_local_gp, jitter_repairs
+    from octolgp.gp.kernels import quadrature_set
+    from octolgp.gp.regression import fit_local_gp, jitter_repairs
 
     # coincident hits and no noise: K is singular (rank 1) before jitter
     pts = np.tile([[1.0, 2.0]], (6, 1))

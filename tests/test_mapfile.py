@@ -15,8 +15,8 @@ import pytest
 
 from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
 from octolgp.cli import main
-from octolgp.export import decode_bt, read_bt_header
-from octolgp.mapfile import decode_leaf, encode_leaf
+from octolgp.export.octomap import decode_bt, read_bt_header
+from octolgp.persist.mapfile import decode_leaf, encode_leaf
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
 HP = Hyperparameters(

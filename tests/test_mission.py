@@ -11,8 +11,8 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from octolgp.errors import OctolgpError
-from octolgp.mission import SENSOR_HEIGHT, Mission3D, simulate_mission3d
 from octolgp.scan import Scan
+from octolgp.sim.mission import SENSOR_HEIGHT, Mission3D, simulate_mission3d
 
 MAX_RANGE = 20.0
 

@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from octolgp.baselines.ogm import build_ogm
+from octolgp.batch.ogm import build_ogm
 from octolgp.bench import octomap_ref
 from octolgp.bench.octomap_ref import OctomapReference, octomap_available
 from octolgp.config import MapConfig

@@ -10,11 +10,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from octolgp.baselines import ogm
-from octolgp.baselines.ogm import build_ogm, logodds, traverse_voxels
+from octolgp.batch import ogm
+from octolgp.batch.ogm import build_ogm, logodds, traverse_voxels
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.keys import coord_to_key, key_to_coord, pack_keys, unpack_keys
+from octolgp.geometry.keys import coord_to_key, key_to_coord, pack_keys, unpack_keys
 from octolgp.scan import Scan
 
 RES = 0.1

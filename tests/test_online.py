@@ -20,11 +20,11 @@ from octolgp import (
     build_map,
 )
 from octolgp.errors import MapFileNotFound
-from octolgp.leaves import LeafGrid, assign_points, assign_segments
+from octolgp.gp.plsc import occupancy_probability
+from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
+from octolgp.mapping.store import Leaf
 from octolgp.partition import _clip_to_box
-from octolgp.plsc import occupancy_probability
-from octolgp.simulate import simulate_paper2d
-from octolgp.store import Leaf
+from octolgp.sim.scenes import simulate_paper2d
 
 HP = Hyperparameters(length_scale=0.8, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
 

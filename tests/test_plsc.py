@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from scipy.special import ndtr
 
-from octolgp.plsc import _neg_loo_log_prob, fit_plsc, occupancy_probability
+from octolgp.gp.plsc import _neg_loo_log_prob, fit_plsc, occupancy_probability
 
 MEAN = st.floats(-50.0, 50.0, allow_nan=False)
 VAR = st.floats(0.0, 100.0, allow_nan=False)

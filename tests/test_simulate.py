@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 from octolgp.errors import OctolgpError
 from octolgp.scan import Scan
-from octolgp.simulate import (
+from octolgp.sim.scenes import (
     SimulatedData,
     ray_box_distance,
     simulate_paper2d,

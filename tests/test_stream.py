@@ -20,8 +20,8 @@ from rerun.chunk import RrdReader
 from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan, load_scans
 from octolgp.cli import main
 from octolgp.io.rrd import read_rrd
-from octolgp.online import ScanUpdate
-from octolgp.viz.stream import RerunSink
+from octolgp.mapping.online import ScanUpdate
+from octolgp.sinks.rerun import RerunSink
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
 HP = Hyperparameters(length_scale=0.8, signal_variance=1.0, noise_variance=0.05, alpha=5.0)

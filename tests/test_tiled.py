@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from octolgp import MapConfig, OctolgpError, OnlineMap, build_map, learn_hyperparameters
+from octolgp.batch.leafmap import build_tiled
 from octolgp.cli import main
 from octolgp.io import load_scans
-from octolgp.tiled import build_tiled
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
 

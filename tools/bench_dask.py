@@ -23,8 +23,8 @@ def main() -> int:
     from distributed import Client, LocalCluster
 
     from octolgp import Hyperparameters, MapConfig
-    from octolgp.mission import simulate_mission3d
-    from octolgp.tiled import build_tiled
+    from octolgp.batch.leafmap import build_tiled
+    from octolgp.sim.mission import simulate_mission3d
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--length", type=float, default=27.0, help="loop length, metres")

@@ -48,7 +48,7 @@ def _rss_mb() -> float:
 
 def _scans(mission: str) -> Iterator[object]:
     from octolgp import load_scans
-    from octolgp.mission import simulate_mission3d
+    from octolgp.sim.mission import simulate_mission3d
 
     if mission == "fr079":
         for _ in range(2):  # replayed twice, streamed each time
@@ -118,7 +118,7 @@ def _learn(mission: str) -> dict[str, float]:
 
 
 def _probs(path: Path) -> dict[int, np.ndarray]:
-    from octolgp.mapfile import decode_leaf
+    from octolgp.persist.mapfile import decode_leaf
 
     con = sqlite3.connect(path)
     out = {int(k): decode_leaf(b).prob for k, b in con.execute("SELECT key, data FROM leaves")}

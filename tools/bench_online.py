@@ -46,7 +46,7 @@ from octolgp.bench.heldout import evaluate, heldout_points, heldout_split
 from octolgp.bench.octomap_ref import OctomapReference, octomap_available
 from octolgp.bench.paper2d import paper2d_config
 from octolgp.scan import Scan
-from octolgp.simulate import simulate_paper2d
+from octolgp.sim.scenes import simulate_paper2d
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"

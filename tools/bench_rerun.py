@@ -23,7 +23,7 @@ import rerun as rr
 
 from octolgp import MapConfig, OnlineConfig, OnlineMap, learn_hyperparameters, load_scans
 from octolgp.scan import Scan
-from octolgp.viz.stream import RerunSink
+from octolgp.sinks.rerun import RerunSink
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"

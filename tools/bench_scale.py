@@ -46,7 +46,7 @@ TEST_SCANS = 20
 
 
 def _mission(length: float):
-    from octolgp.mission import simulate_mission3d
+    from octolgp.sim.mission import simulate_mission3d
 
     return simulate_mission3d(length=length, spacing=1.0, seed=0, **BEAMS)
 
@@ -63,9 +63,9 @@ def _items(scans: list) -> int:
 def child(length: float, jobs: int, hp_json: str, grid: bool) -> dict[str, object]:
     """One size, in this (child) process."""
     from octolgp import MapConfig, build_map
+    from octolgp.batch.leafmap import build_tiled
     from octolgp.bench.heldout import auc, heldout_points
     from octolgp.config import Hyperparameters
-    from octolgp.tiled import build_tiled
 
     mis = _mission(length)
     scans = list(mis.scans())

@@ -60,7 +60,7 @@ elif workload == "3dtk":
         m.insert_scan(s)
     seconds = time.perf_counter() - t
 else:
-    from octolgp.simulate import simulate_paper2d
+    from octolgp.sim.scenes import simulate_paper2d
     data = simulate_paper2d(seed=0)
     config = MapConfig(dim=2, resolution=0.1, hyperparameters=hp)
     t = time.perf_counter()
@@ -76,7 +76,7 @@ def _hp(workload: str, scans: int) -> str:
     import itertools
 
     from octolgp import MapConfig, learn_hyperparameters, load_scans
-    from octolgp.simulate import simulate_paper2d
+    from octolgp.sim.scenes import simulate_paper2d
 
     if workload == "intel":
         data = list(itertools.islice(load_scans(_source("intel")), 40))

@@ -183,13 +183,13 @@ def _builders(
     config: MapConfig, n_jobs: int, fast_online: bool
 ) -> dict[str, Callable[[list[Scan]], Any]]:
     """One function per method: training scans -> a map with ``occupancy(points)``."""
+    from octolgp.batch.build import build_map
     from octolgp.bench.octomap_ref import OctomapReference
-    from octolgp.build import build_map
-    from octolgp.online import OnlineMap
+    from octolgp.mapping.online import OnlineMap
 
     def online(train: list[Scan]) -> Any:
         if fast_online:
-            from octolgp.tiled import build_tiled
+            from octolgp.batch.leafmap import build_tiled
 
             return build_tiled(train, config, n_jobs=n_jobs)
         cfg = dataclasses.replace(config, online=dataclasses.replace(config.online, n_jobs=n_jobs))
@@ -274,7 +274,7 @@ def evaluate_log(
         On fewer than 2 scans, mixed dimensions, bad method names or bad numbers.
     """
     from octolgp.bench.octomap_ref import octomap_available
-    from octolgp.learning import learn_hyperparameters
+    from octolgp.gp.learning import learn_hyperparameters
 
     scan_list = list(scans)
     if len(scan_list) < 2:

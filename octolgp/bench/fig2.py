@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from octolgp.config import Hyperparameters
-from octolgp.kernels import points_set
-from octolgp.local_gp import LocalGP, fit_local_gp, predict_latent
+from octolgp.gp.kernels import points_set
+from octolgp.gp.regression import LocalGP, fit_local_gp, predict_latent
 from octolgp.scan import FloatArray
 
 

@@ -17,11 +17,11 @@ from typing import Any
 import numpy as np
 from sklearn.metrics import roc_auc_score, roc_curve
 
+from octolgp.batch.build import build_map
 from octolgp.bench.fig2 import Fig2Result, run_fig2
-from octolgp.build import build_map
 from octolgp.config import Hyperparameters, MapConfig, PartitionConfig
-from octolgp.learning import learn_hyperparameters
-from octolgp.simulate import simulate_paper2d
+from octolgp.gp.learning import learn_hyperparameters
+from octolgp.sim.scenes import simulate_paper2d
 
 METHOD_NAMES = {"lgp": "OM_LGP", "gp": "OM_GP", "mgp": "OM_MGP", "ogm": "OGM"}
 PAPER_HP = {"l": 2.66, "sigma_f": 2.81, "sigma_n": 0.99, "alpha": 7.94, "beta": -1.42}

@@ -8,9 +8,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
-from octolgp.kernels import QuadratureSet, quadrature_set
+from octolgp.gp.kernels import QuadratureSet, quadrature_set
+from octolgp.gp.plsc import occupancy_probability
 from octolgp.partition import Cluster
-from octolgp.plsc import occupancy_probability
 from octolgp.scan import FloatArray, as_points
 from octolgp.training import TrainingData
 

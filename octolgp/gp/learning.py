@@ -18,13 +18,13 @@ import numpy as np
 from scipy.optimize import minimize
 from threadpoolctl import threadpool_limits
 
+from octolgp.batch.gpmap import cluster_items, quadrature_spacing
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.gpmap import cluster_items, quadrature_spacing
-from octolgp.kernels import QuadratureSet, node_distances
-from octolgp.local_gp import log_marginal_likelihood, loo_log_predictive, loo_predictions
+from octolgp.gp.kernels import QuadratureSet, node_distances
+from octolgp.gp.plsc import fit_plsc
+from octolgp.gp.regression import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.partition import Cluster, partition
-from octolgp.plsc import fit_plsc
 from octolgp.scan import FloatArray, Scan
 from octolgp.training import TrainingData, make_training_data
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import logsumexp
 
-from octolgp.gpmap import GPMap
-from octolgp.local_gp import LocalGP, predict_latent
+from octolgp.batch.gpmap import GPMap
+from octolgp.gp.regression import LocalGP, predict_latent
 from octolgp.partition import Cluster
 from octolgp.scan import FloatArray
 from octolgp.training import TrainingData

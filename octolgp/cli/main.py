@@ -30,7 +30,7 @@ EXAMPLES = """examples:
 
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from octolgp.io import save_scan_log
-    from octolgp.simulate import simulate_paper2d
+    from octolgp.sim.scenes import simulate_paper2d
 
     data = simulate_paper2d(seed=args.seed)
     out = Path(args.out)
@@ -61,8 +61,8 @@ def _cmd_build(args: argparse.Namespace) -> int:
     import itertools
     import os
 
+    from octolgp.batch.leafmap import build_tiled, build_voxelized
     from octolgp.config import MapConfig, OnlineConfig
-    from octolgp.tiled import build_tiled, build_voxelized
 
     out = Path(args.out)
     if args.method != "lgp" and args.scheduler is not None:
@@ -226,7 +226,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
     from tqdm import tqdm
 
     from octolgp.config import MapConfig, OnlineConfig
-    from octolgp.online import OnlineMap
+    from octolgp.mapping.online import OnlineMap
 
     out = Path(args.out)
     resume = getattr(args, "resume", False) and out.exists()
@@ -246,7 +246,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
     rec = _recording(args)
     sink = None
     if rec is not None:
-        from octolgp.viz.stream import RerunSink
+        from octolgp.sinks.rerun import RerunSink
 
         sink = RerunSink(rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty)
     if resume:
@@ -319,7 +319,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def _cmd_query(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from octolgp.online import OnlineMap
+    from octolgp.mapping.online import OnlineMap
 
     pts_path = Path(args.points)
     if not pts_path.is_file():
@@ -338,8 +338,8 @@ def _cmd_query(args: argparse.Namespace) -> int:
 def _cmd_export(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from octolgp.export import write_ply, write_png
-    from octolgp.online import OnlineMap
+    from octolgp.export.octomap import write_ply, write_png
+    from octolgp.mapping.online import OnlineMap
 
     out = Path(args.out)
     kinds = (".bt", ".ot", ".ply", ".png")

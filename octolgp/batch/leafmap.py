@@ -2,7 +2,7 @@
 
 :func:`build_tiled` is the batch counterpart of :class:`~octolgp.online.OnlineMap`:
 all scans become training data at once, the evidence is split into the octree leaves
-(coarse boxes with overlap halos, :mod:`octolgp.leaves`) with the same first-per-voxel
+(coarse boxes with overlap halos, :mod:`octolgp.mapping.grid`) with the same first-per-voxel
 rule, and each leaf is fitted **once** — the paper's iterative k-means under the
 cluster cap inside leaves that hold more than ``OnlineConfig.max_leaf_items`` — and
 predicted at its voxel centres. Fitting a leaf is a pure function of its evidence
@@ -32,11 +32,11 @@ import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.learning import learn_hyperparameters
-from octolgp.online import OnlineMap, ScanUpdate, fit_leaf
-from octolgp.plsc import occupancy_probability
+from octolgp.gp.learning import learn_hyperparameters
+from octolgp.gp.plsc import occupancy_probability
+from octolgp.mapping.online import OnlineMap, ScanUpdate, fit_leaf
+from octolgp.mapping.store import Leaf
 from octolgp.scan import Scan
-from octolgp.store import Leaf
 from octolgp.training import check_scans
 
 __all__ = ["TASK_ITEMS", "build_tiled", "build_voxelized", "fit_leaves"]
@@ -254,7 +254,7 @@ def _gather_all(
     Returns the keys of the leaves that gained evidence (in first-touch order), those
     leaves, and the number of items added.
     """
-    from octolgp.online import _blas_controller
+    from octolgp.mapping.online import _blas_controller
     from octolgp.training import make_training_data
 
     for s in scans:
@@ -307,7 +307,7 @@ def build_voxelized(
     OctolgpError
         On an unknown method (use :func:`build_tiled` for ``"lgp"``) or bad input.
     """
-    from octolgp.build import build_map
+    from octolgp.batch.build import build_map
 
     if method not in ("gp", "mgp", "ogm"):
         raise OctolgpError(f"method must be one of gp, mgp, ogm here, got {method!r}")

@@ -15,7 +15,7 @@ from scipy.special import log_ndtr
 
 from octolgp.config import Hyperparameters
 from octolgp.errors import OctolgpError
-from octolgp.kernels import (
+from octolgp.gp.kernels import (
     QuadratureSet,
     covariance_with_grad,
     item_covariance,

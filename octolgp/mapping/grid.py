@@ -23,9 +23,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from octolgp.baselines.ogm import traverse_voxels
+from octolgp.batch.ogm import traverse_voxels
 from octolgp.config import MapConfig
-from octolgp.keys import pack_keys
+from octolgp.geometry.keys import pack_keys
 from octolgp.partition import _clip_to_box
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray

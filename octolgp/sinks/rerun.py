@@ -35,8 +35,8 @@ import rerun.components as rrc
 from octolgp.scan import FloatArray, Scan
 
 if TYPE_CHECKING:
-    from octolgp.online import OnlineMap, ScanUpdate
-    from octolgp.store import Leaf
+    from octolgp.mapping.online import OnlineMap, ScanUpdate
+    from octolgp.mapping.store import Leaf
 
 
 def _grey(prob: np.ndarray) -> np.ndarray:

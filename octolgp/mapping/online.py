@@ -6,7 +6,7 @@
    (:func:`octolgp.training.make_training_data`).
 2. **Training data → leaves**: a hit goes to every leaf whose halo box holds it; a
    free segment is clipped to the halo box of every leaf it crosses
-   (:mod:`octolgp.leaves`).
+   (:mod:`octolgp.mapping.grid`).
 3. **Bounded evidence**: a leaf keeps the first hit per voxel and the first free
    piece per voxel of the piece's end (:meth:`octolgp.store.Leaf.add_evidence`).
    Its training set is therefore at most two items per voxel of its halo box, so
@@ -47,19 +47,19 @@ from typing import Any
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+from octolgp.batch.gpmap import items_and_targets, quadrature_spacing
+from octolgp.batch.lgp import LocalGPMap, fit_clusters
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.gpmap import items_and_targets, quadrature_spacing
-from octolgp.kernels import QuadratureSet, item_covariance, points_set
-from octolgp.keys import addressable_mask, addressable_range, pack_keys
-from octolgp.learning import learn_hyperparameters
-from octolgp.leaves import LeafGrid, assign_points, assign_segments
-from octolgp.lgp import LocalGPMap, fit_clusters
-from octolgp.local_gp import fit_predict, jitter_repairs
+from octolgp.geometry.keys import addressable_mask, addressable_range, pack_keys
+from octolgp.gp.kernels import QuadratureSet, item_covariance, points_set
+from octolgp.gp.learning import learn_hyperparameters
+from octolgp.gp.plsc import occupancy_probability
+from octolgp.gp.regression import fit_predict, jitter_repairs
+from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
+from octolgp.mapping.store import Leaf, LeafStore
 from octolgp.partition import partition
-from octolgp.plsc import occupancy_probability
 from octolgp.scan import FloatArray, Scan, as_points, check_scan_size
-from octolgp.store import Leaf, LeafStore
 from octolgp.training import IntArray, TrainingData, make_training_data
 
 _CONTROLLER: ThreadpoolController | None = None
@@ -283,7 +283,7 @@ def fit_leaf(
     P(occupied). A leaf whose voxels are all below ``prune_free`` or all above
     ``prune_occupied`` keeps one value, the least confident one, so a pruned leaf never
     overstates. Used by the map's threads and, unchanged, by Dask workers
-    (:mod:`octolgp.tiled`).
+    (:mod:`octolgp.batch.leafmap`).
 
     Parameters
     ----------
@@ -323,7 +323,7 @@ class NullSink:
     """Where map events go when nothing listens: every method does nothing.
 
     The map calls its sink unconditionally (no branches in the pipeline); a
-    :class:`octolgp.viz.stream.RerunSink` logs the same events to Rerun.
+    :class:`octolgp.sinks.rerun.RerunSink` logs the same events to Rerun.
     """
 
     def on_scan(self, m: OnlineMap, scan: Scan, index: int) -> None:
@@ -350,10 +350,10 @@ class OnlineMap:
         ``MapConfig()`` when omitted.
     path : str or Path, optional
         With a path the map is persisted in that SQLite file (which must not
-        exist yet) after every :meth:`insert_scan`; see :mod:`octolgp.mapfile`.
+        exist yet) after every :meth:`insert_scan`; see :mod:`octolgp.persist.mapfile`.
     recording : rerun.RecordingStream, optional
         Stream every scan and every refitted leaf to this Rerun recording
-        (:class:`octolgp.viz.stream.RerunSink` with its defaults).
+        (:class:`octolgp.sinks.rerun.RerunSink` with its defaults).
     sink : object, optional
         Any object with the methods of :class:`NullSink` (for example a
         ``RerunSink`` with options); overrides ``recording``.
@@ -364,7 +364,7 @@ class OnlineMap:
     from RAM after each scan once they are in the map file (a temporary spill file
     when ``path`` is ``None``) and loaded back when a scan or query touches them;
     the map does not depend on the budget. With a file, every ``insert_scan`` is
-    durable when it returns (one SQLite transaction; see :mod:`octolgp.mapfile`).
+    durable when it returns (one SQLite transaction; see :mod:`octolgp.persist.mapfile`).
 
     Examples
     --------
@@ -406,7 +406,7 @@ class OnlineMap:
         cache_mb = config.online.kernel_cache_mb
         self.kernel_cache = None if cache_mb == 0 else KernelCache(int(cache_mb * 1e6))
         if recording is not None:
-            from octolgp.viz.stream import RerunSink
+            from octolgp.sinks.rerun import RerunSink
 
             sink = RerunSink(recording)
         self.sink: Any = NullSink() if sink is None else sink
@@ -416,7 +416,7 @@ class OnlineMap:
             config, training=dataclasses.replace(config.training, dedup=False)
         )
         if not _opened and (path is not None or budget is not None):
-            from octolgp.mapfile import MapFile
+            from octolgp.persist.mapfile import MapFile
 
             # without a path, a memory budget spills evicted leaves to a temporary file
             self._file = MapFile.create(path, self) if path is not None else MapFile.spill(self)
@@ -434,13 +434,13 @@ class OnlineMap:
         OctolgpError
             If it is not an octolgp map file or is corrupt.
         """
-        from octolgp.mapfile import MapFile
+        from octolgp.persist.mapfile import MapFile
 
         return MapFile.open(path)
 
     def save(self, path: str | Path) -> None:
         """Write the whole map to a new SQLite map file (replacing ``path`` atomically)."""
-        from octolgp.mapfile import save_map
+        from octolgp.persist.mapfile import save_map
 
         save_map(self, path)
 
@@ -860,8 +860,8 @@ class OnlineMap:
         int
             Nodes written (OctoMap's ``size()``).
         """
-        from octolgp.export import write_bt, write_ot
-        from octolgp.keys import coord_to_key
+        from octolgp.export.octomap import write_bt, write_ot
+        from octolgp.geometry.keys import coord_to_key
 
         ok = isinstance(threshold, int | float) and not isinstance(threshold, bool)
         if not ok or not 0.0 < threshold < 1.0:

@@ -38,11 +38,11 @@ import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.mapping.store import Leaf
 from octolgp.scan import Scan
-from octolgp.store import Leaf
 
 if TYPE_CHECKING:
-    from octolgp.online import OnlineMap
+    from octolgp.mapping.online import OnlineMap
 
 FORMAT = "octolgp-map"
 VERSION = 2
@@ -209,7 +209,7 @@ class MapFile:
     @classmethod
     def open(cls, path: str | Path) -> OnlineMap:
         """Load a map file (leaves lazily) and keep writing through to it."""
-        from octolgp.online import OnlineMap
+        from octolgp.mapping.online import OnlineMap
 
         p = Path(path)
         if not p.is_file():

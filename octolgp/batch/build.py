@@ -8,13 +8,13 @@ from typing import Any
 
 from threadpoolctl import threadpool_limits
 
-from octolgp.baselines.gp import GlobalGPMap, fit_global_gp
-from octolgp.baselines.mgp import MixtureGPMap, make_gate
+from octolgp.batch.gp import GlobalGPMap, fit_global_gp
+from octolgp.batch.gpmap import GPMap
+from octolgp.batch.lgp import LocalGPMap, fit_clusters
+from octolgp.batch.mgp import MixtureGPMap, make_gate
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.gpmap import GPMap
-from octolgp.learning import learn_from_clusters
-from octolgp.lgp import LocalGPMap, fit_clusters
+from octolgp.gp.learning import learn_from_clusters
 from octolgp.partition import partition
 from octolgp.scan import Scan
 from octolgp.training import check_scans, make_training_data
@@ -68,12 +68,12 @@ def build_map(
     if scheduler is not None:
         if method != "lgp":
             raise OctolgpError(f"scheduler: only method 'lgp' runs on Dask, got {method!r}")
-        from octolgp.tiled import build_tiled
+        from octolgp.batch.leafmap import build_tiled
 
         return build_tiled(scans, config, scheduler=scheduler, n_jobs=n_jobs)
     scan_list = check_scans(scans, config.dim)
     if method == "ogm":
-        from octolgp.baselines.ogm import build_ogm
+        from octolgp.batch.ogm import build_ogm
 
         return build_ogm(scan_list, config)
 

@@ -9,9 +9,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
+from octolgp.batch.gpmap import GPMap, cluster_items, quadrature_spacing
 from octolgp.config import Hyperparameters, MapConfig
-from octolgp.gpmap import GPMap, cluster_items, quadrature_spacing
-from octolgp.local_gp import LocalGP, fit_local_gp, predict_latent
+from octolgp.gp.regression import LocalGP, fit_local_gp, predict_latent
 from octolgp.partition import Cluster
 from octolgp.scan import FloatArray
 from octolgp.training import TrainingData

@@ -5,7 +5,7 @@ tagged with the packed key of its voxel) and its predicted voxels (latent mean,
 variance and P(occupied), float32). The evidence is bounded by construction: a
 leaf keeps the *first* hit per voxel and the *first* free piece per voxel of the
 piece's end, so its training set can never exceed two items per voxel of its halo
-box, however often the robot comes back (see :mod:`octolgp.online`).
+box, however often the robot comes back (see :mod:`octolgp.mapping.online`).
 
 :class:`LeafStore` is the one mutable structure of an online map; everything
 around it is a pure function.

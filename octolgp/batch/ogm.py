@@ -26,7 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from octolgp.config import MapConfig, OgmConfig
 from octolgp.errors import OctolgpError
-from octolgp.keys import (
+from octolgp.geometry.keys import (
     addressable_mask,
     addressable_range,
     coord_to_key,

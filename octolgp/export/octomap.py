@@ -48,7 +48,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.keys import KEY_BITS, addressable_range
+from octolgp.geometry.keys import KEY_BITS, addressable_range
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]

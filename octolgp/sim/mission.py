@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
 from octolgp.scan import FloatArray, Scan, as_points
-from octolgp.simulate import ray_box_distance
+from octolgp.sim.scenes import ray_box_distance
 
 __all__ = ["Mission3D", "simulate_mission3d"]
 

@@ -1,0 +1,1 @@
+"""Exports: OctoMap .bt/.ot files, point clouds and images."""

@@ -1,0 +1,1 @@
+"""Geometry of the map: OctoMap keys, ray traversal, box clipping, rotations."""

@@ -1,0 +1,1 @@
+"""Gaussian-process numerics: kernels, quadrature items, regression, likelihood and LOO, PLSC, learning."""

@@ -1,1 +1,0 @@
-"""Visualisation and streaming (Rerun)."""
