@@ -25,9 +25,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from sklearn.cluster import KMeans
 
 from octolgp.config import MapConfig
+from octolgp.geometry.boxes import clip_to_box
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray, TrainingData
 
@@ -71,6 +71,8 @@ def _kmeans(points: FloatArray, k: int, seed: int) -> IntArray:
         return np.minimum(np.arange(points.shape[0]), max(k - 1, 0)).astype(np.int64)
     if np.unique(points, axis=0).shape[0] < k:  # fewer distinct points than clusters
         return np.zeros(points.shape[0], dtype=np.int64)
+    from sklearn.cluster import KMeans  # imported on first use: it is slow to import
+
     km = KMeans(n_clusters=k, n_init=1, random_state=seed, max_iter=100, tol=1e-4)
     return np.asarray(km.fit_predict(points), dtype=np.int64)
 
@@ -123,22 +125,6 @@ def split_under_cap(points: FloatArray, weight: IntArray, cap: int, seed: int) -
             continue
         todo.extend(groups)
     return done
-
-
-def _clip_to_box(
-    a: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray
-) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """Liang-Barsky clipping of segments ``a → b`` to the box ``[lo, hi]``."""
-    d = b - a
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        t0 = (lo - a) / d
-        t1 = (hi - a) / d
-    tmin = np.where(d != 0, np.minimum(t0, t1), np.where((a >= lo) & (a <= hi), -np.inf, np.inf))
-    tmax = np.where(d != 0, np.maximum(t0, t1), np.where((a >= lo) & (a <= hi), np.inf, -np.inf))
-    t_in = np.clip(tmin.max(axis=1), 0.0, 1.0)
-    t_out = np.clip(tmax.min(axis=1), 0.0, 1.0)
-    keep = t_out > t_in
-    return a + t_in[:, None] * d, a + t_out[:, None] * d, keep
 
 
 def voronoi_boxes(
@@ -239,7 +225,7 @@ def partition(
         if shared.size > room:
             shared = rng.choice(shared, room, replace=False)
         inside = np.union1d(g, shared)
-        s, e, keep = _clip_to_box(data.seg_start, data.seg_end, lo, hi)
+        s, e, keep = clip_to_box(data.seg_start, data.seg_end, lo, hi)
         keep &= np.linalg.norm(e - s, axis=1) > min_piece
         pieces = np.flatnonzero(keep)
         if pieces.size > pc.max_cluster_size:

@@ -9,16 +9,11 @@ from sklearn.gaussian_process.kernels import ConstantKernel, Matern
 
 from octolgp.config import Hyperparameters
 from octolgp.errors import OctolgpError
-from octolgp.gp.kernels import QuadratureSet, item_covariance, points_set, quadrature_set
+from octolgp.gp.kernels import item_covariance
+from octolgp.gp.likelihood import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.gp.plsc import _neg_loo_log_prob
-from octolgp.gp.regression import (
-    fit_local_gp,
-    fit_predict,
-    log_marginal_likelihood,
-    loo_log_predictive,
-    loo_predictions,
-    predict_latent,
-)
+from octolgp.gp.quadrature import QuadratureSet, points_set, quadrature_set
+from octolgp.gp.regression import fit_local_gp, fit_predict, predict_latent
 
 HP = Hyperparameters(length_scale=0.7, signal_variance=1.3, noise_variance=0.05)
 
@@ -76,7 +71,8 @@ def test_prediction_matches_sklearn(d: int) -> None:
 def test_fit_predict_matches_sklearn_and_the_two_step_path(d: int) -> None:
     X, y = _point_data(d)
     Xs = np.random.default_rng(3).uniform(-2.5, 2.5, (40, d))
-    mean, var = fit_predict(points_set(X), y, HP, Xs)
+    mean, var, repaired = fit_predict(points_set(X), y, HP, Xs)
+    assert not repaired
     ref_mean, ref_std = _sklearn_gp(HP).fit(X, y).predict(Xs, return_std=True)
     np.testing.assert_allclose(mean, ref_mean, rtol=0, atol=1e-8)
     np.testing.assert_allclose(var, ref_std**2, rtol=0, atol=1e-8)
@@ -85,7 +81,7 @@ def test_fit_predict_matches_sklearn_and_the_two_step_path(d: int) -> None:
     items = quadrature_set(X, a, a + 0.7, 0.3)
     y2 = np.concatenate([y, -np.ones(5)])
     two_step = predict_latent(fit_local_gp(items, y2, HP), Xs)
-    np.testing.assert_allclose(fit_predict(items, y2, HP, Xs), two_step, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(fit_predict(items, y2, HP, Xs)[:2], two_step, rtol=0, atol=1e-10)
 
 
 def test_prediction_via_quadrature_set_of_points_matches_points_set() -> None:
@@ -229,7 +225,7 @@ def test_loo_log_predictive_value_and_gradient(params: np.ndarray, d: int) -> No
 
 def test_not_positive_definite_is_repaired_in_fits_and_minus_inf_in_the_likelihood() -> None:
     """Coincident hits with a negligible noise give a singular ``K + σn² I``."""
-    from octolgp.gp.regression import _cholesky
+    from octolgp.gp.regression import cholesky
 
     X = np.zeros((2, 2))
     y = np.ones(2)
@@ -238,7 +234,7 @@ def test_not_positive_definite_is_repaired_in_fits_and_minus_inf_in_the_likeliho
     assert np.isfinite(gp.weights).all()
     # a matrix no jitter can repair raises, with the hint
     with pytest.raises(OctolgpError, match=r"not positive definite.*noise_variance"):
-        _cholesky(-np.eye(3))
+        cholesky(-np.eye(3))
     mu, _var = loo_predictions(points_set(X), y, hp)  # repaired there too
     assert np.isfinite(mu).all()
     value, grad = log_marginal_likelihood(points_set(X), y, np.log([1.0, 1.0, 1e-300]))
@@ -259,16 +255,18 @@ def test_same_coincident_hits_fit_with_ordinary_noise() -> None:
 
 
 def test_non_positive_definite_kernel_is_repaired_by_jitter_and_counted() -> None:
-    from octolgp.gp.kernels import quadrature_set
-    from octolgp.gp.regression import fit_local_gp, jitter_repairs
+    from octolgp.gp.quadrature import quadrature_set
+    from octolgp.gp.regression import cholesky, fit_local_gp
 
     # coincident hits and no noise: K is singular (rank 1) before jitter
     pts = np.tile([[1.0, 2.0]], (6, 1))
     items = quadrature_set(pts, np.zeros((0, 2)), np.zeros((0, 2)), 0.1)
     hp = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)
-    before = jitter_repairs()
     gp = fit_local_gp(items, np.ones(6), hp)
-    assert jitter_repairs() == before + 1
+    assert gp.repaired  # reported with the result, no process-wide count
+    assert not fit_local_gp(items, np.ones(6), Hyperparameters(noise_variance=0.1)).repaired
+    _, repaired = cholesky(np.eye(3))
+    assert not repaired
     assert np.isfinite(gp.weights).all()
     # the factor is of K plus a small jitter only
     K = np.ones((6, 6))
@@ -286,3 +284,8 @@ def test_online_map_reports_repaired_leaves() -> None:
     update = m.insert_scan(Scan(np.zeros(2), pts))
     assert update.repaired >= 1
     assert np.isfinite(m.voxels()[1]).all()
+    # a second map in the same process does not see the first map's repairs
+    other = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters()))
+    assert other.insert_scan(Scan(np.zeros(2), pts)).repaired == 0
+    assert other.repaired == 0
+    assert m.repaired == update.repaired

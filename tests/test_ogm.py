@@ -11,10 +11,11 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from octolgp.batch import ogm
-from octolgp.batch.ogm import build_ogm, logodds, traverse_voxels
+from octolgp.batch.ogm import build_ogm, logodds
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import coord_to_key, key_to_coord, pack_keys, unpack_keys
+from octolgp.geometry.raycast import traverse_voxels
 from octolgp.scan import Scan
 
 RES = 0.1

@@ -20,10 +20,10 @@ from octolgp import (
     build_map,
 )
 from octolgp.errors import MapFileNotFound
+from octolgp.geometry.boxes import clip_to_box
 from octolgp.gp.plsc import occupancy_probability
 from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
 from octolgp.mapping.store import Leaf
-from octolgp.partition import _clip_to_box
 from octolgp.sim.scenes import simulate_paper2d
 
 HP = Hyperparameters(length_scale=0.8, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
@@ -91,7 +91,7 @@ def test_assign_segments_matches_brute_force(dim: int) -> None:
     want = set()
     for s in range(a.shape[0]):
         lo, hi = grid.halo_box(cells)
-        ca, cb, keep = _clip_to_box(
+        ca, cb, keep = clip_to_box(
             np.repeat(a[s : s + 1], len(cells), 0), np.repeat(b[s : s + 1], len(cells), 0), lo, hi
         )
         keep &= np.linalg.norm(cb - ca, axis=1) > 0.05
@@ -123,10 +123,13 @@ def test_leaf_keeps_first_item_per_voxel() -> None:
     leaf = Leaf.empty(np.array([1, 2]))
     pts = np.array([[0.01, 0.01], [0.02, 0.02], [0.5, 0.5]])
     keys = np.array([7, 7, 9])
-    assert leaf.add_evidence(pts, keys, pts[:0], pts[:0], keys[:0]) == 2
+    leaf, added = leaf.with_evidence(pts, keys, pts[:0], pts[:0], keys[:0])
+    assert added == 2
     assert np.array_equal(leaf.hits, pts[[0, 2]])
-    assert leaf.add_evidence(pts, keys, pts, pts + 1, keys) == 2  # only the free ones are new
-    assert leaf.add_evidence(pts, keys, pts, pts + 1, keys) == 0
+    new, added = leaf.with_evidence(pts, keys, pts, pts + 1, keys)
+    assert added == 2  # only the free ones are new
+    assert leaf.free_start.shape[0] == 0  # a new leaf: the old one is unchanged
+    assert new.with_evidence(pts, keys, pts, pts + 1, keys) == (new, 0)
 
 
 # ---------------------------------------------------------------- updates
@@ -152,8 +155,9 @@ def test_one_by_one_equals_all_at_once() -> None:
     for s in scans:
         a.insert_scan(s)
     b = OnlineMap(config2d())
-    b._integrate(scans, 0.0, len(scans), [])
+    b.insert_batch(scans)
     assert snapshot(a) == snapshot(b)
+    assert a.n_scans == b.n_scans == len(scans)
 
 
 def test_revisiting_adds_nothing_and_memory_saturates() -> None:
@@ -385,14 +389,23 @@ def test_hyperparameters_learnt_from_first_scans_then_fixed() -> None:
     assert snapshot(fixed) == snapshot(m)
 
 
-def test_queries_flush_the_learning_buffer() -> None:
+def test_queries_answer_provisionally_and_never_learn() -> None:
     config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=50))
     m = OnlineMap(config)
     m.insert_scans([room_scan((0.0, 0.0), n=120), room_scan((1.0, 0.0), n=120)])
     assert m.hyperparameters is None
-    assert m.occupancy([[4.0, 0.0]])[0] > 0.5
-    assert m.hyperparameters is not None
-    assert len(m.store) > 0
+    assert m.provisional
+    assert m.occupancy([[4.0, 0.0]])[0] > 0.5  # a provisional fit of the buffered scans
+    assert m.hyperparameters is None  # ... thrown away: nothing learnt, nothing stored
+    assert len(m.store) == 0
+    assert m.buffered_scans == 2
+    # what flush() would make, which is the one explicit way to learn early
+    flushed = OnlineMap(config)
+    flushed.insert_scans([room_scan((0.0, 0.0), n=120), room_scan((1.0, 0.0), n=120)])
+    flushed.flush()
+    assert not flushed.provisional
+    probe = np.array([[4.0, 0.0], [1.0, 1.0], [0.5, -3.9]])
+    np.testing.assert_array_equal(m.occupancy(probe), flushed.occupancy(probe))
 
 
 def test_set_hyperparameters_refits_every_leaf() -> None:

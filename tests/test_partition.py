@@ -12,7 +12,8 @@ from hypothesis import strategies as st
 from sklearn.exceptions import ConvergenceWarning
 
 from octolgp.config import MapConfig, PartitionConfig
-from octolgp.partition import Cluster, _clip_to_box, partition, split_under_cap
+from octolgp.geometry.boxes import clip_to_box
+from octolgp.partition import Cluster, partition, split_under_cap
 from octolgp.training import TrainingData
 
 RESOLUTION = 0.1
@@ -294,7 +295,7 @@ def test_partition_of_no_hits_is_empty() -> None:
 
 
 @pytest.mark.parametrize("d", [2, 3])
-def test_clip_to_box_matches_dense_sampling(d: int) -> None:
+def testclip_to_box_matches_dense_sampling(d: int) -> None:
     """Liang-Barsky against 20 001 samples per segment (entry/exit within one step)."""
     rng = np.random.default_rng(d)
     n = 400
@@ -305,7 +306,7 @@ def test_clip_to_box_matches_dense_sampling(d: int) -> None:
     b[40:80, 1:] = a[40:80, 1:]
     lo = np.array([-1.0, -0.5, -2.0][:d])
     hi = np.array([1.5, 0.7, 1.0][:d])
-    s, e, keep = _clip_to_box(a, b, lo, hi)
+    s, e, keep = clip_to_box(a, b, lo, hi)
     t = np.linspace(0.0, 1.0, 20_001)
     samples = a[:, None, :] + t[None, :, None] * (b - a)[:, None, :]
     inside = ((samples >= lo) & (samples <= hi)).all(axis=2)

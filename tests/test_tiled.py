@@ -71,7 +71,7 @@ def test_two_worker_dask_cluster_gives_the_same_map(
         ) as cluster,
         distributed.Client(cluster) as client,
     ):
-        remote = build_map(scans, config, scheduler=client)
+        remote = build_map(scans, config, method="leaf", scheduler=client)
         assert isinstance(remote, OnlineMap)
         _assert_same_map(local, remote)
         # the work really ran on both workers, in many small tasks
@@ -108,9 +108,44 @@ def test_bad_build_arguments_are_refused(
         build_tiled(scans, config, **kwargs)
 
 
-def test_scheduler_needs_the_lgp_method_and_scans(scans: list, config: MapConfig) -> None:
-    with pytest.raises(OctolgpError, match="only method 'lgp'"):
-        build_map(scans, config, method="ogm", scheduler="local")
+@pytest.mark.parametrize("method", ["lgp", "leaf"])
+def test_a_scheduler_never_changes_what_is_computed(scans: list, method: str) -> None:
+    """The same build_map call, in-process and on a 2-worker LocalCluster, learning included."""
+    distributed = pytest.importorskip("distributed")
+    config = MapConfig(dim=2, resolution=0.2)  # hyperparameters learnt by each build
+    here = build_map(scans, config, method=method)
+    with (
+        distributed.LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
+        there = build_map(scans, config, method=method, scheduler=client)
+    assert type(there) is type(here)
+    assert there.hyperparameters == here.hyperparameters
+    lo = np.min([s.points.min(axis=0) for s in scans], axis=0)
+    hi = np.max([s.points.max(axis=0) for s in scans], axis=0)
+    g = np.stack(np.meshgrid(*(np.linspace(a, b, 60) for a, b in zip(lo, hi, strict=True))), -1)
+    pts = g.reshape(-1, 2)
+    np.testing.assert_allclose(there.occupancy(pts), here.occupancy(pts), rtol=0, atol=1e-9)
+    for a, b in zip(there.latent(pts), here.latent(pts), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+    if method == "leaf":
+        assert isinstance(here, OnlineMap)
+        assert isinstance(there, OnlineMap)
+        _assert_same_map(here, there)
+
+
+def test_lgp_and_leaf_are_two_methods(scans: list, config: MapConfig) -> None:
+    """The paper's k-means map and the leaf map have their own names and types."""
+    assert not isinstance(build_map(scans[:5], config, method="lgp"), OnlineMap)
+    assert isinstance(build_map(scans[:5], config, method="leaf"), OnlineMap)
+
+
+def test_scheduler_needs_a_scheduled_method_and_scans(scans: list, config: MapConfig) -> None:
+    for method in ("gp", "mgp", "ogm"):
+        with pytest.raises(OctolgpError, match="only methods lgp, leaf run on Dask"):
+            build_map(scans, config, method=method, scheduler="local")
     with pytest.raises(OctolgpError, match="scans is empty"):
         build_tiled([], config)
 

@@ -6,8 +6,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from octolgp.batch.gpmap import GPMap, cluster_items, quadrature_spacing
+from octolgp.batch.gpmap import GPMap
 from octolgp.config import Hyperparameters, MapConfig
+from octolgp.gp.quadrature import cluster_items, quadrature_spacing
 from octolgp.gp.regression import LocalGP, fit_local_gp, predict_latent
 from octolgp.partition import Cluster
 from octolgp.scan import FloatArray

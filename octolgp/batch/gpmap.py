@@ -5,58 +5,9 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
-import numpy as np
-
 from octolgp.config import Hyperparameters, MapConfig
-from octolgp.gp.kernels import QuadratureSet, quadrature_set
 from octolgp.gp.plsc import occupancy_probability
-from octolgp.partition import Cluster
 from octolgp.scan import FloatArray, as_points
-from octolgp.training import TrainingData
-
-
-def quadrature_spacing(config: MapConfig, length_scale: float) -> float:
-    """Node spacing along segments, metres: a fraction of the length scale."""
-    return config.training.quadrature_spacing * length_scale
-
-
-def items_and_targets(
-    hits: FloatArray, seg_start: FloatArray, seg_end: FloatArray, config: MapConfig, spacing: float
-) -> tuple[QuadratureSet, FloatArray]:
-    """Hits and free segments as quadrature nodes, and their targets (+1 hits, −1 free).
-
-    Parameters
-    ----------
-    hits : ndarray of shape (h, d)
-        Hit points, metres.
-    seg_start, seg_end : ndarray of shape (s, d)
-        Free segments, metres.
-    config : MapConfig
-        Uses the quadrature node bounds of ``config.training``.
-    spacing : float
-        Node spacing along segments, metres.
-
-    Returns
-    -------
-    items : QuadratureSet
-        Hits, then free segments.
-    y : ndarray of shape (h + s,)
-    """
-    tc = config.training
-    items = quadrature_set(
-        hits, seg_start, seg_end, spacing, tc.min_quadrature_nodes, tc.max_quadrature_nodes
-    )
-    y = np.concatenate([np.ones(hits.shape[0]), -np.ones(seg_start.shape[0])])
-    return items, y
-
-
-def cluster_items(
-    data: TrainingData, cluster: Cluster, config: MapConfig, spacing: float
-) -> tuple[QuadratureSet, FloatArray]:
-    """A cluster's items and targets (:func:`items_and_targets` of its hits and pieces)."""
-    return items_and_targets(
-        data.hits[cluster.hits], cluster.seg_start, cluster.seg_end, config, spacing
-    )
 
 
 @dataclass

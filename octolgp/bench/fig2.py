@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from octolgp.config import Hyperparameters
-from octolgp.gp.kernels import points_set
+from octolgp.gp.quadrature import points_set
 from octolgp.gp.regression import LocalGP, fit_local_gp, predict_latent
 from octolgp.scan import FloatArray
 

@@ -61,12 +61,16 @@ def _cmd_build(args: argparse.Namespace) -> int:
     import itertools
     import os
 
-    from octolgp.batch.leafmap import build_tiled, build_voxelized
+    from octolgp.batch.build import SCHEDULED
+    from octolgp.batch.leafmap import build_tiled
+    from octolgp.batch.voxelized import build_voxelized
     from octolgp.config import MapConfig, OnlineConfig
 
     out = Path(args.out)
-    if args.method != "lgp" and args.scheduler is not None:
-        raise OctolgpError(f"--scheduler runs --method lgp only, got --method {args.method}")
+    if args.method not in SCHEDULED and args.scheduler is not None:
+        raise OctolgpError(
+            f"--scheduler runs --method {' or '.join(SCHEDULED)} only, got --method {args.method}"
+        )
     if out.exists() and not args.overwrite:
         raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
     first, scans = _first_and_rest(args.scans, args.format, args.skip_bad)
@@ -95,7 +99,7 @@ def _cmd_build(args: argparse.Namespace) -> int:
         bar.update(done - bar.n)
 
     try:
-        if args.method == "lgp":
+        if args.method == "leaf":
             m = build_tiled(
                 scan_list,
                 config,
@@ -106,7 +110,15 @@ def _cmd_build(args: argparse.Namespace) -> int:
                 progress=progress,
             )
         else:
-            m = build_voxelized(scan_list, config, args.method, path=partial, progress=progress)
+            m = build_voxelized(
+                scan_list,
+                config,
+                args.method,
+                path=partial,
+                progress=progress,
+                scheduler=scheduler,
+                n_jobs=args.jobs,
+            )
     finally:
         bar.close()
     stats = m.build_stats
@@ -524,10 +536,11 @@ def make_parser() -> argparse.ArgumentParser:
     bld.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
     bld.add_argument(
         "--method",
-        choices=["lgp", "gp", "mgp", "ogm"],
-        default="lgp",
-        help="lgp: overlapping local GPs (default); gp, mgp, ogm: the baselines, stored as "
-        "their values at the voxel centres",
+        choices=["leaf", "lgp", "gp", "mgp", "ogm"],
+        default="leaf",
+        help="leaf: the online map's overlapping local GPs, each octree leaf fitted once "
+        "(default); lgp: the paper's k-means local GPs; gp, mgp, ogm: the baselines "
+        "(all but leaf stored as their values at the voxel centres)",
     )
     bld.add_argument("--jobs", type=_positive_int, default=1, help="threads fitting leaves")
     bld.add_argument(

@@ -42,13 +42,14 @@ import io
 import math
 import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, TypedDict
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import KEY_BITS, addressable_range
+from octolgp.geometry.keys import KEY_BITS, addressable_range, coord_to_key
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
@@ -684,3 +685,40 @@ def write_png(
         fig.savefig(os.fspath(path), dpi=dpi)
     except OSError as exc:
         raise OctolgpError(f"path {os.fspath(path)!r} cannot be written: {exc}") from exc
+
+
+def write_map_voxels(
+    path: PathLike,
+    centres: FloatArray,
+    prob: FloatArray,
+    resolution: float,
+    tree_depth: int,
+    threshold: float = 0.5,
+) -> int:
+    """Write predicted voxels as an OctoMap file, chosen by suffix.
+
+    ``.ot``: each voxel's log-odds ``log(P / (1 − P))`` (P clipped to
+    ``[1e-6, 1 − 1e-6]``). Otherwise ``.bt``: occupied where ``P > threshold``.
+
+    Parameters
+    ----------
+    path : str or Path
+    centres : ndarray of shape (k, d)
+        Voxel centres, metres, world frame (a 2D map is one layer at z key 32768).
+    prob : ndarray of shape (k,)
+        P(occupied).
+    resolution : float
+    tree_depth : int
+    threshold : float
+
+    Returns
+    -------
+    int
+        Nodes written.
+    """
+    keys = coord_to_key(centres, resolution, tree_depth)
+    p = Path(path)
+    if p.suffix == ".ot":
+        q = np.clip(prob, 1e-6, 1.0 - 1e-6)
+        return write_ot(p, keys, np.log(q / (1.0 - q)), resolution)
+    return write_bt(p, keys, prob > threshold, resolution)

@@ -18,12 +18,12 @@ import numpy as np
 from scipy.optimize import minimize
 from threadpoolctl import threadpool_limits
 
-from octolgp.batch.gpmap import cluster_items, quadrature_spacing
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.gp.kernels import QuadratureSet, node_distances
+from octolgp.gp.kernels import node_distances
+from octolgp.gp.likelihood import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.gp.plsc import fit_plsc
-from octolgp.gp.regression import log_marginal_likelihood, loo_log_predictive, loo_predictions
+from octolgp.gp.quadrature import QuadratureSet, cluster_items, quadrature_spacing
 from octolgp.partition import Cluster, partition
 from octolgp.scan import FloatArray, Scan
 from octolgp.training import TrainingData, make_training_data

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from octolgp.batch.ogm import traverse_voxels
 from octolgp.config import MapConfig
+from octolgp.geometry.boxes import clip_to_box
 from octolgp.geometry.keys import pack_keys
-from octolgp.partition import _clip_to_box
+from octolgp.geometry.raycast import traverse_voxels
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
 
@@ -237,7 +237,7 @@ def assign_segments(
     # the lower neighbour when the piece gets that close to the lower face, the upper
     # one likewise. This keeps ~1-3 of the 3^d candidates per crossed leaf.
     lo, hi = grid.box(cells)
-    a, b, inside = _clip_to_box(start[seg], end[seg], lo, hi)
+    a, b, inside = clip_to_box(start[seg], end[seg], lo, hi)
     margin = grid.halo * grid.edge * (1.0 + 1e-9) + 1e-12
     near_lo = (np.minimum(a, b) - lo <= margin) | ~inside[:, None]
     near_hi = (hi - np.maximum(a, b) <= margin) | ~inside[:, None]
@@ -259,6 +259,6 @@ def assign_segments(
     first = np.r_[True, (seg[1:] != seg[:-1]) | (packed[1:] != packed[:-1])]
     seg, cells = seg[first], cells[first]
     lo, hi = grid.halo_box(cells)
-    a, b, keep = _clip_to_box(start[seg], end[seg], lo, hi)
+    a, b, keep = clip_to_box(start[seg], end[seg], lo, hi)
     keep &= np.linalg.norm(b - a, axis=1) > min_piece
     return seg[keep], cells[keep], a[keep], b[keep]

@@ -1,14 +1,16 @@
 """The online mapper: scans go in one at a time; only the leaves they touch are refitted.
 
-:class:`OnlineMap` is the paper's method made incremental, OctoMap-style:
+:class:`OnlineMap` is the paper's method made incremental, OctoMap-style. Each
+:meth:`OnlineMap.insert_scan` computes first and writes once, as OctoMap's
+``computeUpdate`` then ``updateNode``:
 
 1. **Scan → training data**: a hit and a free segment per beam
    (:func:`octolgp.training.make_training_data`).
 2. **Training data → leaves**: a hit goes to every leaf whose halo box holds it; a
    free segment is clipped to the halo box of every leaf it crosses
-   (:mod:`octolgp.mapping.grid`).
+   (:func:`octolgp.mapping.evidence.gather_evidence`).
 3. **Bounded evidence**: a leaf keeps the first hit per voxel and the first free
-   piece per voxel of the piece's end (:meth:`octolgp.store.Leaf.add_evidence`).
+   piece per voxel of the piece's end (:meth:`octolgp.mapping.store.Leaf.with_evidence`).
    Its training set is therefore at most two items per voxel of its halo box, so
    revisiting a place costs nothing once its voxels are observed: a scan that
    brings no new voxel to a leaf leaves that leaf's GP and voxels as they were.
@@ -16,30 +18,35 @@
    Because the rule is "first in time order", inserting scans one by one gives
    bit-for-bit the map of inserting them all at once.
 4. **Leaves → local GP → PLSC**: a touched leaf that gained items is refitted
-   (one GP on its whole training set, or the paper's iterative k-means clusters
-   when it holds more than ``OnlineConfig.max_leaf_items``) and its voxel centres
-   are predicted and written into the store as latent mean, variance and
-   P(occupied).
-5. **Pruning**: a leaf whose voxels are all below ``prune_free`` or all above
-   ``prune_occupied`` keeps one value (the least confident one) instead of one
-   per voxel.
+   (:func:`octolgp.mapping.fit.fit_leaf`: one GP on its whole training set, or the
+   paper's iterative k-means clusters when it holds more than
+   ``OnlineConfig.max_leaf_items``); its voxel centres get latent mean, variance and
+   P(occupied); a leaf all below ``prune_free`` or all above ``prune_occupied``
+   keeps one value.
+5. **Store → file → sink**: the new leaves are swapped into the store
+   (:meth:`octolgp.mapping.store.LeafStore.apply`, the only writer), written to the
+   map file in one transaction, and reported to the sink.
 
-Hyperparameters are those of ``MapConfig.hyperparameters``; when it is ``None``
-the first ``OnlineConfig.learn_scans`` scans are buffered, the hyperparameters are
-learnt on them (:func:`octolgp.learning.learn_hyperparameters`) and then held
-fixed. To re-learn, call :meth:`OnlineMap.relearn` with the scans to learn from:
-every leaf is refitted from its stored evidence with the new values.
+Hyperparameters are those of ``MapConfig.hyperparameters``. When it is ``None`` the
+first ``OnlineConfig.learn_scans`` scans are buffered, the hyperparameters are
+learnt on them (:func:`octolgp.gp.learning.learn_hyperparameters`) and then held
+fixed. The map after k scans is a function of those k scans and the config only:
+queries, :meth:`~OnlineMap.save`, :meth:`~OnlineMap.export_octomap`,
+:meth:`~OnlineMap.voxels`, opening and closing never learn. While scans are
+buffered, reads answer *provisionally* (:attr:`OnlineMap.provisional`): from a map
+fitted on the buffered scans with hyperparameters learnt on them, computed for the
+read and thrown away (kept only until the next insert). :meth:`OnlineMap.flush` is
+the one explicit way to learn early. To re-learn later, call
+:meth:`OnlineMap.relearn`: every leaf is refitted from its stored evidence.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import threading
+import logging
 import time
-from collections import OrderedDict
 from collections.abc import Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -47,298 +54,32 @@ from typing import Any
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
-from octolgp.batch.gpmap import items_and_targets, quadrature_spacing
-from octolgp.batch.lgp import LocalGPMap, fit_clusters
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import addressable_mask, addressable_range, pack_keys
-from octolgp.gp.kernels import QuadratureSet, item_covariance, points_set
 from octolgp.gp.learning import learn_hyperparameters
 from octolgp.gp.plsc import occupancy_probability
-from octolgp.gp.regression import fit_predict, jitter_repairs
-from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
-from octolgp.mapping.store import Leaf, LeafStore
-from octolgp.partition import partition
-from octolgp.scan import FloatArray, Scan, as_points, check_scan_size
-from octolgp.training import IntArray, TrainingData, make_training_data
+from octolgp.mapping.cache import KernelCache
+from octolgp.mapping.evidence import check_scan, gather_evidence
+from octolgp.mapping.fit import LeafFit, LeafFitter, fit_leaves
+from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.query import interpolate, lookup, query_points
+from octolgp.mapping.store import Leaf, LeafStore, MapStorage
+from octolgp.mapping.update import ScanUpdate
+from octolgp.scan import FloatArray, Scan
+from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
+from octolgp.training import make_training_data
 
-_CONTROLLER: ThreadpoolController | None = None
+__all__ = ["OnlineMap", "ScanUpdate"]
 
+logger = logging.getLogger(__name__)
 
-def _blas_controller() -> ThreadpoolController:
-    """One process-wide controller (finding the BLAS libraries is the slow part)."""
-    global _CONTROLLER
-    if _CONTROLLER is None:
-        _CONTROLLER = ThreadpoolController()
-    return _CONTROLLER
+CHUNK_BEAMS = 60_000
+"""Beams per chunk when :meth:`OnlineMap.insert_batch` gathers evidence: bounds the
+transient arrays of the segment-to-leaf assignment by the chunk, not the log."""
 
-
-@dataclass(frozen=True)
-class ScanUpdate:
-    """What one :meth:`OnlineMap.insert_scan` did.
-
-    Attributes
-    ----------
-    scan : int
-        Number of the scan in the mission, from 1.
-    touched_leaves : int
-        Leaves whose box or halo the scan's evidence reached.
-    refit_leaves : int
-        Touched leaves that gained evidence and were refitted and re-predicted.
-    new_items : int
-        Training items added over all leaves.
-    pruned_leaves : int
-        Refitted leaves that were pruned to one value.
-    seconds : float
-        Wall time of the call.
-    stages : dict of str to float
-        Seconds per stage: ``training``, ``assign``, ``fit`` (fit and predict),
-        ``store``, and ``learning`` when hyperparameters were learnt in this call.
-    buffered : bool
-        True while scans are buffered to learn hyperparameters; the map is
-        unchanged until then.
-    n_leaves : int
-        Leaves in the map after the call.
-    memory_bytes : int
-        Bytes held by the leaves after the call.
-    repaired : int
-        Kernel matrices that were not numerically positive definite (coincident
-        items, tiny noise) and were repaired by jitter during this step
-        (:func:`octolgp.local_gp.jitter_repairs`; a process-wide count, so concurrent
-        maps in one process share it).
-    """
-
-    scan: int
-    touched_leaves: int
-    refit_leaves: int
-    new_items: int
-    pruned_leaves: int
-    seconds: float
-    stages: dict[str, float] = field(default_factory=dict)
-    buffered: bool = False
-    n_leaves: int = 0
-    memory_bytes: int = 0
-    repaired: int = 0
-
-
-@dataclass(frozen=True, slots=True)
-class _Blocks:
-    """A leaf's item covariance blocks for its first ``n_hits`` hits and ``n_free`` pieces."""
-
-    n_hits: int
-    n_free: int
-    K: FloatArray  # (n, n) noise-free item covariance, items = hits then pieces
-    Ks: FloatArray  # (V, n) voxel centres x items
-    key: tuple[float, ...]  # what the blocks depend on besides the items
-
-
-class KernelCache:
-    """Least-recently-used item covariance blocks of leaves, bounded in bytes.
-
-    Thread-safe (the map refits leaves on several threads); each leaf's entry is
-    touched by one thread at a time.
-
-    Parameters
-    ----------
-    max_bytes : int
-        Entries are dropped, oldest first, while the total exceeds this.
-    """
-
-    def __init__(self, max_bytes: int) -> None:
-        self.max_bytes = max_bytes
-        self.bytes = 0
-        self.hits = 0
-        self.misses = 0
-        self._entries: OrderedDict[int, _Blocks] = OrderedDict()
-        self._lock = threading.Lock()
-
-    def get(self, key: int) -> _Blocks | None:
-        """The entry of leaf ``key``, or ``None``."""
-        with self._lock:
-            entry = self._entries.get(key)
-            if entry is not None:
-                self._entries.move_to_end(key)
-            return entry
-
-    def put(self, key: int, entry: _Blocks) -> None:
-        """Store (or replace) the entry of leaf ``key`` and evict down to the budget."""
-        size = entry.K.nbytes + entry.Ks.nbytes
-        with self._lock:
-            old = self._entries.pop(key, None)
-            if old is not None:
-                self.bytes -= old.K.nbytes + old.Ks.nbytes
-            if size > self.max_bytes:
-                return
-            self._entries[key] = entry
-            self.bytes += size
-            while self.bytes > self.max_bytes:  # oldest first
-                _, gone = self._entries.popitem(last=False)
-                self.bytes -= gone.K.nbytes + gone.Ks.nbytes
-
-
-def _leaf_blocks(
-    leaf: Leaf,
-    items: QuadratureSet,
-    centres: FloatArray,
-    hp: Hyperparameters,
-    key: tuple[float, ...],
-    cache: KernelCache,
-) -> tuple[FloatArray, FloatArray]:
-    """The leaf's ``K`` and ``Ks``, reusing its cached blocks for the items it already had.
-
-    Items are the hits then the free pieces, both append-only, so the old items sit at
-    known rows. Every entry of an item covariance depends only on its two items (node
-    distances, the kernel and the weighted sums over each item's nodes, in a fixed
-    order), so the assembled blocks equal freshly computed ones bit for bit.
-    """
-    packed = int(pack_keys(leaf.index[None, :])[0])
-    h, f = leaf.hits.shape[0], leaf.free_start.shape[0]
-    old = cache.get(packed)
-    ls, sf2 = hp.length_scale, hp.signal_variance
-    if old is None or old.key != key or old.n_hits > h or old.n_free > f:
-        cache.misses += 1
-        K = item_covariance(items, items, ls, sf2)
-        Ks = item_covariance(points_set(centres), items, ls, sf2)
-    else:
-        cache.hits += 1
-        h0, f0 = old.n_hits, old.n_free
-        old_idx = np.concatenate([np.arange(h0), h + np.arange(f0)])
-        new_idx = np.concatenate([np.arange(h0, h), h + np.arange(f0, f)])
-        new = items.subset(new_idx)
-        K = np.empty((h + f, h + f))
-        K[np.ix_(old_idx, old_idx)] = old.K
-        K[new_idx, :] = item_covariance(new, items, ls, sf2)
-        K[:, new_idx] = item_covariance(items, new, ls, sf2)
-        Ks = np.empty((centres.shape[0], h + f))
-        Ks[:, old_idx] = old.Ks
-        Ks[:, new_idx] = item_covariance(points_set(centres), new, ls, sf2)
-    cache.put(packed, _Blocks(h, f, K, Ks, key))
-    return K, Ks
-
-
-def predict_leaf(
-    leaf: Leaf,
-    centres: FloatArray,
-    config: MapConfig,
-    hp: Hyperparameters,
-    cache: KernelCache | None = None,
-) -> tuple[FloatArray, FloatArray]:
-    """Fit a leaf's local GP(s) on its evidence and predict at its voxel centres.
-
-    Parameters
-    ----------
-    leaf : Leaf
-    centres : ndarray of shape (V, d)
-        The leaf's voxel centres, metres.
-    config : MapConfig
-    hp : Hyperparameters
-    cache : KernelCache, optional
-        Item covariance blocks of earlier fits of this leaf, reused for the items it
-        already had (one-GP leaves only); the result does not depend on it.
-
-    Returns
-    -------
-    mean, var : ndarray of shape (V,)
-        Latent posterior (variance without the noise).
-    """
-    spacing = quadrature_spacing(config, hp.length_scale)
-    cap = config.online.max_leaf_items
-    hits, fs, fe = leaf.hits, leaf.free_start, leaf.free_end
-    if leaf.n_items == 0:
-        return np.zeros(centres.shape[0]), np.full(centres.shape[0], hp.signal_variance)
-    if leaf.n_items <= cap or hits.shape[0] == 0:
-        if leaf.n_items > cap:  # free space only: an even, deterministic thinning
-            keep = np.linspace(0, fs.shape[0] - 1, cap).round().astype(np.int64)
-            fs, fe = fs[keep], fe[keep]
-            cache = None  # the thinned items are not append-only
-        items, y = items_and_targets(hits, fs, fe, config, spacing)
-        if cache is None:
-            return fit_predict(items, y, hp, centres)
-        tc = config.training
-        key = (
-            hp.length_scale,
-            hp.signal_variance,
-            spacing,
-            float(tc.min_quadrature_nodes),
-            float(tc.max_quadrature_nodes),
-        )
-        K, Ks = _leaf_blocks(leaf, items, centres, hp, key, cache)
-        return fit_predict(items, y, hp, centres, K=K, Ks=Ks)
-    # the paper's iterative k-means under the cluster cap, nearest-centre prediction
-    data = TrainingData(hits, fs, fe, np.full(fs.shape[0], -1, dtype=np.int64))
-    # a lattice at the map resolution is fine enough for a leaf's Voronoi cells
-    cells = int(np.ceil(float(np.ptp(centres, axis=0).max()) / config.resolution)) + 3
-    clusters = partition(data, config, cells=cells)
-    gps = fit_clusters(data, clusters, config, hp)
-    return LocalGPMap(config, hp, clusters=clusters, gps=gps)._latent_nearest(centres)
-
-
-def fit_leaf(
-    leaf: Leaf, config: MapConfig, hp: Hyperparameters, cache: KernelCache | None = None
-) -> Leaf:
-    """Fit a leaf on its evidence and return it with fresh voxel values (a pure function).
-
-    The voxel centres follow from ``leaf.index`` and the leaf grid of ``config``; the
-    latent mean and variance are predicted there (:func:`predict_leaf`) and PLSC gives
-    P(occupied). A leaf whose voxels are all below ``prune_free`` or all above
-    ``prune_occupied`` keeps one value, the least confident one, so a pruned leaf never
-    overstates. Used by the map's threads and, unchanged, by Dask workers
-    (:mod:`octolgp.batch.leafmap`).
-
-    Parameters
-    ----------
-    leaf : Leaf
-        Evidence of one leaf (its value arrays are ignored).
-    config : MapConfig
-    hp : Hyperparameters
-    cache : KernelCache, optional
-        Reused kernel blocks (:func:`predict_leaf`); the result does not depend on it.
-
-    Returns
-    -------
-    Leaf
-        A copy with ``mean``, ``var`` (float32, latent) and ``prob``, ``pruned`` set and
-        ``refits`` incremented.
-    """
-    oc = config.online
-    centres = LeafGrid.from_config(config).voxel_centres(leaf.index)
-    mean, var = predict_leaf(leaf, centres, config, hp, cache)
-    prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
-    pruned = False
-    if oc.prune and (prob.max() < oc.prune_free or prob.min() > oc.prune_occupied):
-        at = int(np.argmax(prob) if prob.max() < oc.prune_free else np.argmin(prob))
-        mean, var, prob = mean[at : at + 1], var[at : at + 1], prob[at : at + 1]
-        pruned = True
-    return dataclasses.replace(
-        leaf,
-        mean=mean.astype(np.float32),
-        var=var.astype(np.float32),
-        prob=prob.astype(np.float32),
-        pruned=pruned,
-        refits=leaf.refits + 1,
-    )
-
-
-class NullSink:
-    """Where map events go when nothing listens: every method does nothing.
-
-    The map calls its sink unconditionally (no branches in the pipeline); a
-    :class:`octolgp.sinks.rerun.RerunSink` logs the same events to Rerun.
-    """
-
-    def on_scan(self, m: OnlineMap, scan: Scan, index: int) -> None:
-        """An accepted scan (before buffering or integration)."""
-
-    def on_update(self, m: OnlineMap, update: ScanUpdate, keys: list[int]) -> None:
-        """Leaves ``keys`` were refitted by the update."""
-
-
-def _group(packed: IntArray) -> tuple[IntArray, IntArray, IntArray]:
-    """Sort order, unique values and run bounds of packed keys."""
-    order = np.argsort(packed, kind="stable")
-    s = packed[order]
-    starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]]) if s.size else np.zeros(0, np.int64)
-    return order, s[starts], np.append(starts, s.size).astype(np.int64)
+FIT_BATCH_ITEMS = 160_000
+"""Training items (summed over leaves) fitted per batch by :meth:`OnlineMap.insert_batch`
+in this process; each batch is stored and committed before the next."""
 
 
 class OnlineMap:
@@ -354,17 +95,20 @@ class OnlineMap:
     recording : rerun.RecordingStream, optional
         Stream every scan and every refitted leaf to this Rerun recording
         (:class:`octolgp.sinks.rerun.RerunSink` with its defaults).
-    sink : object, optional
-        Any object with the methods of :class:`NullSink` (for example a
-        ``RerunSink`` with options); overrides ``recording``.
+    sink : Sink, optional
+        Any object with the methods of :class:`octolgp.sinks.base.Sink` (for
+        example a ``RerunSink`` with options); overrides ``recording``.
+    storage : MapStorage, optional
+        An opened map file whose state this map takes over (what :meth:`open`
+        passes); ``config`` must be the file's.
 
     Notes
     -----
     With ``MapConfig.memory_budget_mb`` the least recently used leaves are dropped
     from RAM after each scan once they are in the map file (a temporary spill file
-    when ``path`` is ``None``) and loaded back when a scan or query touches them;
-    the map does not depend on the budget. With a file, every ``insert_scan`` is
-    durable when it returns (one SQLite transaction; see :mod:`octolgp.persist.mapfile`).
+    when ``path`` is ``None``) and loaded back when a scan touches them; reads load
+    them without keeping them. The map does not depend on the budget. With a file,
+    every ``insert_scan`` is durable when it returns (one SQLite transaction).
 
     Examples
     --------
@@ -386,8 +130,8 @@ class OnlineMap:
         path: str | Path | None = None,
         *,
         recording: Any = None,
-        sink: Any = None,
-        _opened: bool = False,
+        sink: Sink | None = None,
+        storage: MapStorage | None = None,
     ) -> None:
         if config is None:
             config = MapConfig()
@@ -399,28 +143,46 @@ class OnlineMap:
         self.store = LeafStore(None if budget is None else int(budget * 1e6))
         self.hyperparameters: Hyperparameters | None = config.hyperparameters
         self.n_scans = 0
-        self._buffer: list[Scan] = []
-        self._pool: ThreadPoolExecutor | None = None
-        self._file: Any = None
+        self.repaired = 0  # kernel matrices repaired by jitter in this map's fits
         self.build_stats: dict[str, float] = {}
         cache_mb = config.online.kernel_cache_mb
         self.kernel_cache = None if cache_mb == 0 else KernelCache(int(cache_mb * 1e6))
-        if recording is not None:
+        if recording is not None and sink is None:
             from octolgp.sinks.rerun import RerunSink
 
             sink = RerunSink(recording)
-        self.sink: Any = NullSink() if sink is None else sink
-        # Evidence is deduplicated per leaf (Leaf.add_evidence), in time order, so a
+        self.sink: Sink = NullSink() if sink is None else sink
+        self._buffer: list[Scan] = []  # scans awaiting the hyperparameters
+        self._provisional: tuple[int, OnlineMap] | None = None  # a read's throw-away fit
+        self._pool: ThreadPoolExecutor | None = None
+        self._blas: ThreadpoolController | None = None
+        # Evidence is deduplicated per leaf (Leaf.with_evidence), in time order, so a
         # scan-level dedup would only make one-by-one and all-at-once insertion differ.
         self._raw_config = dataclasses.replace(
             config, training=dataclasses.replace(config.training, dedup=False)
         )
-        if not _opened and (path is not None or budget is not None):
+        self._file: MapStorage | None = storage
+        if storage is not None:
+            self._resume(storage)
+        elif path is not None or budget is not None:
             from octolgp.persist.mapfile import MapFile
 
             # without a path, a memory budget spills evicted leaves to a temporary file
-            self._file = MapFile.create(path, self) if path is not None else MapFile.spill(self)
+            self._file = (
+                MapFile.create(path, config, self.hyperparameters)
+                if path is not None
+                else MapFile.spill(config)
+            )
             self.store.attach(self._file, [])
+
+    def _resume(self, storage: MapStorage) -> None:
+        """Take over the state recorded in an opened map file."""
+        header = storage.header
+        self.hyperparameters = header.hyperparameters
+        self.n_scans = header.n_scans
+        self.store.attach(storage, header.leaf_keys)
+        if self.hyperparameters is None and not header.leaf_keys:
+            self._buffer = list(storage.scans())  # still collecting scans to learn from
 
     # ------------------------------------------------------------------ life cycle
     @classmethod
@@ -436,13 +198,21 @@ class OnlineMap:
         """
         from octolgp.persist.mapfile import MapFile
 
-        return MapFile.open(path)
+        f = MapFile.open(path)
+        return cls(f.header.config, storage=f)
 
     def save(self, path: str | Path) -> None:
-        """Write the whole map to a new SQLite map file (replacing ``path`` atomically)."""
-        from octolgp.persist.mapfile import save_map
+        """Write the map to a new SQLite map file, replacing ``path`` atomically.
 
-        save_map(self, path)
+        The file holds the map as it is: a map still buffering scans is saved with
+        its buffered scans and no hyperparameters, and reopens buffering.
+        """
+        from octolgp.persist.mapfile import write_map
+
+        journal = self._file.scans() if self._file is not None else iter(self._buffer)
+        write_map(
+            path, self.config, self.hyperparameters, self.n_scans, self.store.items(), journal
+        )
 
     def close(self) -> None:
         """Release worker threads and the map file."""
@@ -452,6 +222,7 @@ class OnlineMap:
         if self._file is not None:
             self._file.close()
             self._file = None
+        self._provisional = None
 
     def __enter__(self) -> OnlineMap:
         return self
@@ -464,27 +235,33 @@ class OnlineMap:
     ) -> None:
         self.close()
 
-    # ------------------------------------------------------------------ updates
-    def _check_scan(self, scan: object) -> Scan:
-        if not isinstance(scan, Scan):
-            raise OctolgpError(f"scan must be a Scan, got {type(scan).__name__}")
-        check_scan_size(scan, self.config.online.max_scan_points)
-        if scan.dim != self.config.dim:
-            raise OctolgpError(f"scan is {scan.dim}D but MapConfig.dim is {self.config.dim}")
-        res, depth = self.config.resolution, self.config.tree_depth
-        # the halo of a leaf at the edge of the tree must stay addressable too
-        low, high = addressable_range(res, depth)
-        margin = 2 * self.grid.edge
-        for name, pts in (("scan.origin", scan.origin[None, :]), ("scan.points", scan.points)):
-            bad = (pts < low + margin) | (pts >= high - margin)
-            if bad.any():
-                row = int(np.flatnonzero(bad.any(axis=1))[0])
-                raise OctolgpError(
-                    f"{name} row {row} ({pts[row].tolist()}) is outside the addressable range "
-                    f"[{low + margin:g}, {high - margin:g}) m of this map"
-                )
-        return scan
+    @property
+    def path(self) -> Path | None:
+        """The map file (a temporary spill file for a budgeted in-memory map), or ``None``."""
+        return None if self._file is None else self._file.path
 
+    def scans(self) -> Iterator[Scan]:
+        """The inserted scans, in order, from the map file's journal.
+
+        A map without a file keeps only the scans it is still buffering.
+        """
+        return self._file.scans() if self._file is not None else iter(list(self._buffer))
+
+    @property
+    def provisional(self) -> bool:
+        """True while scans are buffered to learn hyperparameters.
+
+        Reads then answer from a provisional fit of the buffered scans that is thrown
+        away; the map itself holds no leaves until the hyperparameters are learnt.
+        """
+        return self.hyperparameters is None and bool(self._buffer)
+
+    @property
+    def buffered_scans(self) -> int:
+        """Scans held back until the hyperparameters are learnt."""
+        return len(self._buffer)
+
+    # ------------------------------------------------------------------ updates
     def insert_scan(self, scan: Scan) -> ScanUpdate:
         """Add one scan: refit and re-predict only the leaves it brings new evidence to.
 
@@ -504,30 +281,30 @@ class OnlineMap:
             outside the addressable range. The map is then exactly as before.
         """
         t0 = time.perf_counter()
-        scan = self._check_scan(scan)
+        scan = check_scan(scan, self.config, self.grid)
         index = self.n_scans + 1
-        self.sink.on_scan(self, scan, index)
-        if self.hyperparameters is None:
-            self._buffer.append(scan)
-            if len(self._buffer) >= self.config.online.learn_scans:
-                update = self._learn_and_flush(t0, journal=[(index, scan)])
-                if update is not None:
-                    return update
-            else:
-                self.n_scans = index
-                self._commit([], [(index, scan)])
-            return ScanUpdate(
-                scan=self.n_scans,
-                touched_leaves=0,
-                refit_leaves=0,
-                new_items=0,
-                pruned_leaves=0,
-                seconds=time.perf_counter() - t0,
-                buffered=True,
-                n_leaves=len(self.store),
-                memory_bytes=self.memory_bytes(),
-            )
-        return self._integrate([scan], t0, index, journal=[(index, scan)])
+        self.sink.on_scan(scan, index)
+        if self.hyperparameters is not None:
+            return self._step([scan], [(index, scan)], t0)
+        self._buffer.append(scan)
+        self._provisional = None
+        if len(self._buffer) >= self.config.online.learn_scans:
+            update = self._learn_and_step([(index, scan)], t0)
+            if update is not None:
+                return update
+        else:
+            self._commit([], [(index, scan)], index)
+        return ScanUpdate(
+            scan=self.n_scans,
+            touched_leaves=0,
+            refit_leaves=0,
+            new_items=0,
+            pruned_leaves=0,
+            seconds=time.perf_counter() - t0,
+            buffered=True,
+            n_leaves=len(self.store),
+            memory_bytes=self.memory_bytes(),
+        )
 
     def insert_scans(self, scans: Iterable[Scan]) -> list[ScanUpdate]:
         """Insert scans one by one; return their updates."""
@@ -536,30 +313,215 @@ class OnlineMap:
     def flush(self) -> ScanUpdate | None:
         """Learn hyperparameters from the buffered scans now and insert them.
 
-        Queries call it, so a map with fewer than ``learn_scans`` scans still
-        answers from what it has. Returns ``None`` when nothing is buffered.
+        The one explicit way to end the learning phase early (the CLI calls it at the
+        end of a run shorter than ``learn_scans``); reads never do. Returns ``None``
+        when nothing is buffered or the buffer holds no training data yet.
         """
         if not self._buffer:
             return None
-        return self._learn_and_flush(time.perf_counter(), journal=[])
+        return self._learn_and_step([], time.perf_counter())
 
-    def _learn_and_flush(self, t0: float, journal: list[tuple[int, Scan]]) -> ScanUpdate | None:
+    def _learn_and_step(self, journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate | None:
         """Learn on the buffer and insert it; ``None`` (still buffering) without data."""
         if make_training_data(self._buffer, self._raw_config).n_items == 0:
             # nothing to learn from yet (every beam on its sensor): keep buffering
             if journal:
-                self.n_scans = journal[-1][0]
-                self._commit([], journal)
+                self._commit([], journal, journal[-1][0])
             return None
         t1 = time.perf_counter()
         hp = learn_hyperparameters(self._buffer, self.config)
         learning = time.perf_counter() - t1
+        logger.info("learnt hyperparameters on %d scans: %s", len(self._buffer), hp)
         self.hyperparameters = hp
-        buffered, self._buffer = self._buffer, []
-        index = journal[-1][0] if journal else self.n_scans
-        update = self._integrate(buffered, t0, index, journal)
+        buffered, self._buffer, self._provisional = self._buffer, [], None
+        update = self._step(buffered, journal, t0)
         update.stages["learning"] = learning
         return update
+
+    def _step(self, scans: list[Scan], journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate:
+        """Scans → evidence per leaf → refit the leaves that gained any → store → file → sink."""
+        hp = self.hyperparameters
+        assert hp is not None
+        index = journal[-1][0] if journal else self.n_scans
+        stages: dict[str, float] = {}
+        with self._blas_limit():
+            # 1. scan → training data: a hit and a free segment per beam
+            t = time.perf_counter()
+            data = make_training_data(scans, self._raw_config)
+            stages["training"] = time.perf_counter() - t
+            # 2-3. training data → leaves, keeping the first item per voxel
+            t = time.perf_counter()
+            evidence = gather_evidence(data, self.grid, self.config, self.store.get)
+            stages["assign"] = time.perf_counter() - t
+            # 4. leaves → local GP → PLSC, on the map's threads
+            t = time.perf_counter()
+            leaves = [leaf for _, leaf in evidence.changed]
+            fits = fit_leaves(leaves, self.config, hp, self.kernel_cache, self._threads(leaves))
+            stages["fit"] = time.perf_counter() - t
+        # 5. the one write: store, file, then the sink
+        t = time.perf_counter()
+        keys = [k for k, _ in evidence.changed]
+        fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
+        self.store.apply(fitted, evidence.touched, index)
+        self._commit(keys, journal, index)
+        stages["store"] = time.perf_counter() - t
+        repaired = self._count_repairs(fits)
+        update = ScanUpdate(
+            scan=index,
+            touched_leaves=len(evidence.touched),
+            refit_leaves=len(keys),
+            new_items=evidence.new_items,
+            pruned_leaves=sum(f.leaf.pruned for f in fits),
+            seconds=time.perf_counter() - t0,
+            stages=stages,
+            n_leaves=len(self.store),
+            memory_bytes=self.memory_bytes(),
+            repaired=repaired,
+        )
+        self.sink.on_update(update, self._change(fitted))
+        return update
+
+    def insert_batch(
+        self,
+        scans: Iterable[Scan],
+        *,
+        fitter: LeafFitter | None = None,
+        progress: Any = None,
+    ) -> ScanUpdate:
+        """Insert many scans as one step: every touched leaf is fitted once.
+
+        The same map as inserting the scans one by one (the evidence rule is "first
+        in time order"), at a fraction of the cost for a whole log. Evidence is
+        gathered in chunks of about :data:`CHUNK_BEAMS` beams, and leaves are fitted,
+        stored and committed in batches, so transient memory is bounded by the chunk
+        and the batch, not the log.
+
+        Parameters
+        ----------
+        scans : iterable of Scan
+            World-frame scans of dimension ``config.dim``; at least one.
+        fitter : callable, optional
+            Where the leaves are fitted (:data:`octolgp.mapping.fit.LeafFitter`): by
+            default on this map's threads; :func:`octolgp.batch.leafmap.build_tiled`
+            passes one that runs batches on a Dask cluster. It decides where the work
+            runs, never what is computed. With the default fitter and no
+            hyperparameters yet, they are learnt first on the first ``learn_scans``
+            scans (buffered ones included).
+        progress : callable, optional
+            Called as ``progress(leaves_fitted, leaves_total)`` after each batch.
+
+        Returns
+        -------
+        ScanUpdate
+            For the whole batch; ``build_stats`` holds the stage timings and sizes.
+
+        Raises
+        ------
+        OctolgpError
+            On a bad scan (checked before anything changes) or no scans at all.
+        """
+        t0 = time.perf_counter()
+        new_scans = [check_scan(s, self.config, self.grid) for s in scans]
+        if not new_scans:
+            raise OctolgpError("scans: no scans to build from")
+        for i, s in enumerate(new_scans, start=self.n_scans + 1):
+            self.sink.on_scan(s, i)
+        journal = list(enumerate(new_scans, start=self.n_scans + 1))
+        index = journal[-1][0]
+        scan_list = new_scans
+        stats: dict[str, float] = {"learning": 0.0}
+        if self.hyperparameters is None and fitter is None:  # learn on the first scans
+            scan_list = self._buffer + new_scans
+            t = time.perf_counter()
+            hp = learn_hyperparameters(scan_list[: self.config.online.learn_scans], self.config)
+            stats["learning"] = time.perf_counter() - t
+            logger.info("learnt hyperparameters on the first scans: %s", hp)
+            self.hyperparameters, self._buffer, self._provisional = hp, [], None
+        gathered, new_items = self._gather_batch(scan_list, stats)
+        keys, leaves = list(gathered), list(gathered.values())
+        del gathered
+        t = time.perf_counter()
+        pruned = repaired = done = 0
+        run = self._local_fitter if fitter is None else fitter
+        for group_k, group_f in run(keys, leaves):  # one batch of leaves per iteration
+            self.store.apply(
+                [(k, f.leaf) for k, f in zip(group_k, group_f, strict=True)], (), index
+            )
+            pruned += sum(f.leaf.pruned for f in group_f)
+            repaired += self._count_repairs(group_f)
+            self._commit(group_k, [], self.n_scans)  # each batch durable, then evictable
+            done += len(group_k)
+            if progress is not None:
+                progress(done, len(keys))
+        stats["fit"] = time.perf_counter() - t
+        t = time.perf_counter()
+        self._commit([], journal, index)
+        stats["store"] = time.perf_counter() - t
+        self.build_stats = {
+            **stats,
+            "leaves": float(len(keys)),
+            "items": float(new_items),
+            "voxels": float(len(keys) * self.grid.voxels_per_leaf),
+        }
+        update = ScanUpdate(
+            scan=index,
+            touched_leaves=len(keys),
+            refit_leaves=len(keys),
+            new_items=new_items,
+            pruned_leaves=pruned,
+            seconds=time.perf_counter() - t0,
+            stages=stats,
+            n_leaves=len(self.store),
+            memory_bytes=self.memory_bytes(),
+            repaired=repaired,
+        )
+        self.sink.on_update(update, self._change((k, self.store.peek(k)) for k in keys))
+        return update
+
+    def _gather_batch(
+        self, scans: list[Scan], stats: dict[str, float]
+    ) -> tuple[dict[int, Leaf], int]:
+        """Every scan's evidence, chunk by chunk in time order, as new leaves by key.
+
+        Chunks in time order give exactly the leaves of all scans at once (first item
+        per voxel wins) while bounding the assignment's transient arrays.
+        """
+        gathered: dict[int, Leaf] = {}  # first-touch order
+        new_items = 0
+        stats["training"] = stats["assign"] = 0.0
+
+        def current(key: int) -> Leaf | None:
+            leaf = gathered.get(key)
+            return leaf if leaf is not None else self.store.get(key)
+
+        for chunk in _chunks(scans, CHUNK_BEAMS):  # a few hundred thousand beams each
+            t = time.perf_counter()
+            with self._blas_limit():
+                data = make_training_data(chunk, self._raw_config)
+            stats["training"] += time.perf_counter() - t
+            t = time.perf_counter()
+            evidence = gather_evidence(data, self.grid, self.config, current)
+            del data
+            new_items += evidence.new_items
+            for key, leaf in evidence.changed:  # one iteration per leaf that gained evidence
+                gathered[key] = leaf
+            stats["assign"] += time.perf_counter() - t
+        return gathered, new_items
+
+    def _local_fitter(
+        self, keys: list[int], leaves: list[Leaf]
+    ) -> Iterator[tuple[list[int], list[LeafFit]]]:
+        """Fit leaves on this map's threads in batches of about FIT_BATCH_ITEMS items.
+
+        Every leaf is fitted once here, so there are no kernel blocks worth caching.
+        """
+        hp = self.hyperparameters
+        assert hp is not None
+        for lo, hi in _batches([leaf.n_items for leaf in leaves], FIT_BATCH_ITEMS):
+            group = leaves[lo:hi]
+            with self._blas_limit():
+                fits = fit_leaves(group, self.config, hp, None, self._threads(group))
+            yield keys[lo:hi], fits
 
     def relearn(self, scans: Iterable[Scan]) -> Hyperparameters:
         """Learn new hyperparameters on ``scans`` and refit every leaf with them."""
@@ -570,191 +532,100 @@ class OnlineMap:
     def set_hyperparameters(self, hp: Hyperparameters) -> None:
         """Use ``hp`` from now on and refit every leaf from its stored evidence.
 
-        Leaves are refitted in batches of 256 so a map with a memory budget never
-        holds more than that many beyond its budget.
+        Buffered scans are inserted with ``hp``. Leaves are refitted in batches of
+        256 so a map with a memory budget never holds more than that many beyond its
+        budget.
         """
         if not isinstance(hp, Hyperparameters):
             raise OctolgpError(f"hp must be Hyperparameters, got {type(hp).__name__}")
-        self.flush()
         self.hyperparameters = hp
+        if self._buffer:
+            buffered, self._buffer, self._provisional = self._buffer, [], None
+            self._step(buffered, [], time.perf_counter())
         keys = list(self.store)
         for lo in range(0, len(keys), 256):  # one batch of leaves per iteration
-            batch = keys[lo : lo + 256]
-            leaves = [self.store.peek(k) for k in batch]
-            fitted, _ = self._fit([leaf for leaf in leaves if leaf is not None])
-            for key, leaf in zip(batch, fitted, strict=True):
-                self.store.put(key, leaf)
-            self._commit(batch, [])
+            batch = [(k, leaf) for k in keys[lo : lo + 256] if (leaf := self.store.peek(k))]
+            with self._blas_limit():
+                leaves = [leaf for _, leaf in batch]
+                fits = fit_leaves(leaves, self.config, hp, self.kernel_cache, self._threads(leaves))
+            self.repaired += sum(f.repaired for f in fits)
+            fitted = [(k, f.leaf) for (k, _), f in zip(batch, fits, strict=True)]
+            self.store.apply(fitted)  # each leaf keeps its last-use stamp
+            self._commit([k for k, _ in fitted], [], self.n_scans)
 
-    def _commit(self, keys: list[int], journal: list[tuple[int, Scan]]) -> None:
-        """Make the step durable (map file, if any) and trim RAM to the budget."""
+    # ------------------------------------------------------------------ plumbing
+    def _commit(self, keys: list[int], journal: list[tuple[int, Scan]], n_scans: int) -> None:
+        """Set the scan count, make the step durable (map file, if any), trim RAM."""
+        self.n_scans = n_scans
         if self._file is not None:
-            self.store.persisted(self._file.commit(self, keys, journal))
+            leaves = [(k, leaf) for k in keys if (leaf := self.store.get(k)) is not None]
+            written = self._file.commit(leaves, journal, self.hyperparameters, n_scans)
+            self.store.persisted(written)
         self.store.trim()
 
-    def _integrate(
-        self, scans: list[Scan], t0: float, index: int, journal: list[tuple[int, Scan]]
-    ) -> ScanUpdate:
-        """Scans → evidence per leaf → refit the leaves that gained any → store → file."""
-        stages: dict[str, float] = {}
-        with _blas_controller().limit(limits=1):
-            t = time.perf_counter()
-            data = make_training_data(scans, self._raw_config)
-            stages["training"] = time.perf_counter() - t
-
-            t = time.perf_counter()
-            changed, touched, new_items = self._gather(data)
-            stages["assign"] = time.perf_counter() - t
-
-            t = time.perf_counter()
-            keys = [k for k, _ in changed]
-            repairs = jitter_repairs()
-            fitted, pruned = self._fit([leaf for _, leaf in changed])
-            repairs = jitter_repairs() - repairs
-            stages["fit"] = time.perf_counter() - t
-
-        t = time.perf_counter()
-        self.n_scans = index
-        for key in touched:
-            leaf = self.store.get(key)
-            if leaf is not None:
-                leaf.touched = index
-        for key, leaf in zip(keys, fitted, strict=True):
-            leaf.touched = index
-            self.store.put(key, leaf)
-        self._commit(keys, journal)
-        stages["store"] = time.perf_counter() - t
-        update = ScanUpdate(
-            scan=index,
-            touched_leaves=len(touched),
-            refit_leaves=len(keys),
-            new_items=new_items,
-            pruned_leaves=pruned,
-            seconds=time.perf_counter() - t0,
-            stages=stages,
-            n_leaves=len(self.store),
-            memory_bytes=self.memory_bytes(),
-            repaired=repairs,
-        )
-        self.sink.on_update(self, update, keys)
-        return update
-
-    def _gather(self, data: TrainingData) -> tuple[list[tuple[int, Leaf]], list[int], int]:
-        """Copies of the touched leaves with the new evidence added (the store is untouched).
-
-        Returns the leaves that gained items (key, new leaf), the keys of all
-        touched leaves, and the number of items added.
-        """
-        grid = self.grid
-        h_idx, h_leaf = assign_points(grid, data.hits)
-        _, s_leaf, a, b = assign_segments(
-            grid, data.seg_start, data.seg_end, 0.5 * self.config.resolution
-        )
-        hits = data.hits[h_idx]
-        hit_keys = grid.voxel_keys(hits)
-        free_keys = grid.voxel_keys(b, self.config.online.free_voxels)
-        h_order, h_keys, h_bounds = _group(grid.pack(h_leaf))
-        s_order, s_keys, s_bounds = _group(grid.pack(s_leaf))
-        touched = np.union1d(h_keys, s_keys)
-        changed: list[tuple[int, Leaf]] = []
-        new_items = 0
-        hi = np.searchsorted(h_keys, touched)
-        si = np.searchsorted(s_keys, touched)
-        for j, key in enumerate(touched.tolist()):  # one iteration per touched leaf
-            hsel = np.zeros(0, dtype=np.int64)
-            ssel = np.zeros(0, dtype=np.int64)
-            if hi[j] < h_keys.size and h_keys[hi[j]] == key:
-                hsel = h_order[h_bounds[hi[j]] : h_bounds[hi[j] + 1]]
-            if si[j] < s_keys.size and s_keys[si[j]] == key:
-                ssel = s_order[s_bounds[si[j]] : s_bounds[si[j] + 1]]
-            old = self.store.get(key)
-            if old is None:
-                index = h_leaf[hsel[0]] if hsel.size else s_leaf[ssel[0]]
-                leaf = Leaf.empty(index)
-            else:
-                leaf = dataclasses.replace(old)
-            added = leaf.add_evidence(hits[hsel], hit_keys[hsel], a[ssel], b[ssel], free_keys[ssel])
-            if added:
-                new_items += added
-                changed.append((key, leaf))
-        return changed, touched.tolist(), new_items
-
-    def _fit(self, leaves: list[Leaf]) -> tuple[list[Leaf], int]:
-        """Refit and re-predict leaves (threads over leaves); returns new leaves and pruned count."""
-        hp = self.hyperparameters
-        assert hp is not None
+    def _threads(self, leaves: list[Leaf]) -> ThreadPoolExecutor | None:
+        """The map's thread pool when ``n_jobs > 1`` and there is more than one leaf."""
         n_jobs = self.config.online.n_jobs
-        cache = self.kernel_cache
-        # one BLAS thread per leaf: small matrices, parallelism is over leaves
-        with _blas_controller().limit(limits=1):
-            if n_jobs > 1 and len(leaves) > 1:
-                if self._pool is None:
-                    self._pool = ThreadPoolExecutor(max_workers=n_jobs)
-                out = list(
-                    self._pool.map(lambda leaf: fit_leaf(leaf, self.config, hp, cache), leaves)
+        if n_jobs <= 1 or len(leaves) < 2:
+            return None
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=n_jobs)
+        return self._pool
+
+    def _blas_limit(self) -> Any:
+        """One BLAS thread per leaf fit: small matrices, parallelism is over leaves."""
+        if self._blas is None:  # finding the BLAS libraries is the slow part: once per map
+            self._blas = ThreadpoolController()
+        return self._blas.limit(limits=1)
+
+    def _count_repairs(self, fits: list[LeafFit]) -> int:
+        repaired = sum(f.repaired for f in fits)
+        if repaired:
+            logger.info("%d leaf kernel matrices repaired by jitter", repaired)
+        self.repaired += repaired
+        return repaired
+
+    def _change(self, leaves: Iterable[tuple[int, Leaf | None]]) -> MapChange:
+        """What a sink sees of refitted leaves: boxes, voxel centres and values."""
+        hp = self.hyperparameters
+        grid = self.grid
+
+        def views() -> Iterator[LeafView]:
+            for k, leaf in leaves:  # one iteration per refitted leaf
+                if leaf is None:
+                    continue
+                lo, hi = grid.box(leaf.index[None, :])
+                centres = grid.voxel_centres(leaf.index)
+                yield LeafView(
+                    k, lo[0], hi[0], centres, leaf.prob, leaf.mean, leaf.var, leaf.pruned
                 )
-            else:
-                out = [fit_leaf(leaf, self.config, hp, cache) for leaf in leaves]
-        return out, sum(leaf.pruned for leaf in out)
 
-    # ------------------------------------------------------------------ queries
-    def _points(self, points: object) -> FloatArray:
-        X = as_points(points, "points", dim=self.config.dim)
-        inside = addressable_mask(X, self.config.resolution, self.config.tree_depth)
-        if not inside.all():
-            low, high = addressable_range(self.config.resolution, self.config.tree_depth)
-            row = int(np.flatnonzero(~inside)[0])
-            raise OctolgpError(
-                f"points row {row} ({X[row].tolist()}) is outside the addressable range "
-                f"[{low:g}, {high:g}) m"
-            )
-        return X
+        return MapChange(
+            dim=self.config.dim,
+            resolution=self.config.resolution,
+            side=self.grid.side,
+            signal_variance=1.0 if hp is None else hp.signal_variance,
+            leaves=views(),
+        )
 
-    def _lookup(self, X: FloatArray, fields: tuple[str, ...]) -> list[np.ndarray]:
-        """Stored voxel values at points; NaN where no leaf holds the point."""
-        out = [np.full(X.shape[0], np.nan) for _ in fields]
-        if X.shape[0] == 0 or len(self.store) == 0:
-            return out
-        leaf_idx = self.grid.leaf_of(X)
-        order, keys, bounds = _group(self.grid.pack(leaf_idx))
-        for j, key in enumerate(keys.tolist()):  # one iteration per leaf queried
-            leaf = self.store.get(key)
-            if leaf is None or leaf.prob.size == 0:
-                continue
-            sel = order[bounds[j] : bounds[j + 1]]
-            flat = np.zeros(sel.size, dtype=np.int64)
-            if not leaf.pruned:
-                flat = self.grid.voxel_index(X[sel], leaf.index)
-            for arr, name in zip(out, fields, strict=True):
-                arr[sel] = getattr(leaf, name)[flat]
-        return out
+    # ------------------------------------------------------------------ reads
+    def _readable(self) -> OnlineMap:
+        """The map reads come from: this one, or a provisional fit while buffering."""
+        if not self.provisional:
+            return self
+        if self._provisional is None or self._provisional[0] != len(self._buffer):
+            self._provisional = (len(self._buffer), self._provisional_map())
+        return self._provisional[1]
 
-    def _interpolated(self, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
-        """Multilinear interpolation of the voxel latent mean and variance at points.
-
-        The ``2**d`` voxel centres around each point are weighted by the usual
-        bilinear/trilinear weights; a corner no leaf holds (or outside the addressable
-        range) contributes the GP prior ``(0, σf²)``. Also returns which points lie in
-        a voxel that holds a value.
-        """
-        d = self.config.dim
-        res = self.config.resolution
-        prior = 1.0 if self.hyperparameters is None else self.hyperparameters.signal_variance
-        (own,) = self._lookup(X, ("mean",))
-        u = X / res - 0.5
-        base = np.floor(u)
-        frac = u - base
-        corners = np.array(list(np.ndindex(*(2,) * d)), dtype=np.float64)  # (2^d, d)
-        weights = np.prod(np.where(corners[:, None, :] == 1, frac, 1.0 - frac), axis=2)
-        centres = ((base[None, :, :] + corners[:, None, :] + 0.5) * res).reshape(-1, d)
-        inside = addressable_mask(centres, res, self.config.tree_depth)
-        mean = np.full(centres.shape[0], np.nan)
-        var = np.full(centres.shape[0], np.nan)
-        mean[inside], var[inside] = self._lookup(centres[inside], ("mean", "var"))
-        known = ~np.isnan(mean)
-        mean = np.where(known, mean, 0.0).reshape(weights.shape)
-        var = np.where(known, var, prior).reshape(weights.shape)
-        return (weights * mean).sum(axis=0), (weights * var).sum(axis=0), ~np.isnan(own)
+    def _provisional_map(self) -> OnlineMap:
+        """A throw-away in-memory map of the buffered scans (what :meth:`flush` would make)."""
+        if make_training_data(self._buffer, self._raw_config).n_items == 0:
+            return OnlineMap(dataclasses.replace(self.config, memory_budget_mb=None))
+        hp = learn_hyperparameters(self._buffer, self.config)
+        config = dataclasses.replace(self.config, hyperparameters=hp, memory_budget_mb=None)
+        provisional = OnlineMap(config)
+        provisional.insert_batch(self._buffer)
+        return provisional
 
     def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
         """P(occupied) at query points.
@@ -775,19 +646,21 @@ class OnlineMap:
         -------
         ndarray of shape (q,)
             In [0, 1]; exactly 0.5 where the voxel holding the point has no value.
+            While :attr:`provisional`, from a fit of the buffered scans that is thrown
+            away (the map does not change).
 
         Raises
         ------
         OctolgpError
             On a bad shape, a non-finite value or a point outside the addressable range.
         """
-        X = self._points(points)
-        self.flush()
-        if not interpolate or self.hyperparameters is None:
-            (prob,) = self._lookup(X, ("prob",))
+        X = query_points(points, self.config)
+        m = self._readable()
+        hp = m.hyperparameters
+        if not interpolate or hp is None:
+            (prob,) = lookup(m.store, m.grid, X, ("prob",))
             return np.where(np.isnan(prob), 0.5, prob)
-        mean, var, known = self._interpolated(X)
-        hp = self.hyperparameters
+        mean, var, known = interpolate_latent(m, X)
         prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
         return np.where(known, prob, 0.5)
 
@@ -795,7 +668,7 @@ class OnlineMap:
         """GP latent mean and variance at query points.
 
         ``interpolate`` as in :meth:`occupancy` (multilinear between voxel centres, or
-        the voxel holding each point).
+        the voxel holding each point); provisional while scans are buffered.
 
         Returns
         -------
@@ -803,13 +676,13 @@ class OnlineMap:
             The prior ``(0, σf²)`` where the voxel holding the point has no value
             (``σf² = 1`` before hyperparameters exist).
         """
-        X = self._points(points)
-        self.flush()
-        prior = 1.0 if self.hyperparameters is None else self.hyperparameters.signal_variance
+        X = query_points(points, self.config)
+        m = self._readable()
+        prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
         if not interpolate:
-            mean, var = self._lookup(X, ("mean", "var"))
+            mean, var = lookup(m.store, m.grid, X, ("mean", "var"))
             return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
-        mean, var, known = self._interpolated(X)
+        mean, var, known = interpolate_latent(m, X)
         return np.where(known, mean, 0.0), np.where(known, var, prior)
 
     def voxel_centres(self, leaf: Leaf) -> FloatArray:
@@ -823,17 +696,19 @@ class OnlineMap:
     def voxels(self) -> tuple[FloatArray, FloatArray]:
         """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
 
+        Provisional while scans are buffered (see :attr:`provisional`).
+
         Returns
         -------
         centres : ndarray of shape (k, d)
         prob : ndarray of shape (k,)
         """
-        self.flush()
+        m = self._readable()
         cs, ps = [], []
-        for _, leaf in self.store.items():  # one iteration per leaf
+        for _, leaf in m.store.items():  # one iteration per leaf
             if leaf.prob.size == 0:
                 continue
-            cs.append(self.voxel_centres(leaf))
+            cs.append(m.grid.voxel_centres(leaf.index))
             ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
         if not cs:
             return np.zeros((0, self.config.dim)), np.zeros(0)
@@ -853,26 +728,22 @@ class OnlineMap:
         voxels no leaf predicts stay unknown. ``.ot`` is the full format with each
         voxel's log-odds ``log(P / (1 − P))``. A 2D map is one layer of voxels whose
         z key is 32768 (z in ``[0, resolution)``). Identical sibling voxels are
-        pruned as OctoMap does.
+        pruned as OctoMap does. Provisional while scans are buffered.
 
         Returns
         -------
         int
             Nodes written (OctoMap's ``size()``).
         """
-        from octolgp.export.octomap import write_bt, write_ot
-        from octolgp.geometry.keys import coord_to_key
+        from octolgp.export.octomap import write_map_voxels
 
         ok = isinstance(threshold, int | float) and not isinstance(threshold, bool)
         if not ok or not 0.0 < threshold < 1.0:
             raise OctolgpError(f"threshold must be a number in (0, 1), got {threshold!r}")
         centres, prob = self.voxels()
-        keys = coord_to_key(centres, self.config.resolution, self.config.tree_depth)
-        p = Path(path)
-        if p.suffix == ".ot":
-            q = np.clip(prob, 1e-6, 1.0 - 1e-6)
-            return write_ot(p, keys, np.log(q / (1.0 - q)), self.config.resolution)
-        return write_bt(p, keys, prob > threshold, self.config.resolution)
+        return write_map_voxels(
+            path, centres, prob, self.config.resolution, self.config.tree_depth, threshold
+        )
 
     def memory_bytes(self) -> int:
         """Bytes held by the leaves (evidence and voxel values)."""
@@ -883,3 +754,35 @@ class OnlineMap:
             f"OnlineMap(dim={self.config.dim}, resolution={self.config.resolution:g}, "
             f"scans={self.n_scans}, leaves={len(self.store)})"
         )
+
+
+def interpolate_latent(m: OnlineMap, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    """Multilinear latent mean and variance of map ``m`` at points (see :func:`interpolate`)."""
+    prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
+    return interpolate(m.store, m.grid, m.config, prior, X)
+
+
+def _chunks(scans: list[Scan], beams: int) -> Iterator[list[Scan]]:
+    """Consecutive runs of scans holding about ``beams`` beams each (at least one scan)."""
+    chunk: list[Scan] = []
+    total = 0
+    for s in scans:  # one iteration per scan
+        chunk.append(s)
+        total += len(s)
+        if total >= beams:
+            yield chunk
+            chunk, total = [], 0
+    if chunk:
+        yield chunk
+
+
+def _batches(sizes: list[int], items: int) -> Iterator[tuple[int, int]]:
+    """``(lo, hi)`` runs of consecutive entries whose sizes sum to about ``items`` each."""
+    lo = total = 0
+    for i, size in enumerate(sizes):  # one iteration per leaf
+        total += size
+        if total >= items:
+            yield lo, i + 1
+            lo, total = i + 1, 0
+    if lo < len(sizes):
+        yield lo, len(sizes)

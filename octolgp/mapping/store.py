@@ -13,16 +13,22 @@ around it is a pure function.
 
 from __future__ import annotations
 
+import dataclasses
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from typing import Protocol
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
+
+if TYPE_CHECKING:
+    from octolgp.config import Hyperparameters, MapConfig
+    from octolgp.scan import Scan
 
 Float32Array = NDArray[np.float32]
 
@@ -110,38 +116,103 @@ class Leaf:
         )
         return sum(a.nbytes for a in arrays)
 
-    def add_evidence(
+    def with_evidence(
         self,
         hits: FloatArray,
         hit_keys: IntArray,
         free_start: FloatArray,
         free_end: FloatArray,
         free_keys: IntArray,
-    ) -> int:
-        """Append the hits and pieces whose voxel the leaf has no item of that class in.
+    ) -> tuple[Leaf, int]:
+        """The leaf with the hits and pieces whose voxel it has no item of that class in.
+
+        Parameters
+        ----------
+        hits : ndarray of shape (h, d)
+            Candidate hits, metres, world frame, in time order.
+        hit_keys : ndarray of shape (h,)
+            Packed voxel key of each hit.
+        free_start, free_end : ndarray of shape (s, d)
+            Candidate free pieces (clipped to the halo box), in time order.
+        free_keys : ndarray of shape (s,)
+            Packed voxel key of each piece's end.
 
         Returns
         -------
-        int
+        leaf : Leaf
+            A new leaf (this one is not modified); ``self`` when nothing was added.
+        added : int
             Number of items added (0 means the leaf's GP would not change).
         """
         new_h = _new_first(self.hit_keys, hit_keys)
         new_f = _new_first(self.free_keys, free_keys)
+        if not new_h.size and not new_f.size:
+            return self, 0
+        leaf = dataclasses.replace(self)
         if new_h.size:
-            self.hits = np.concatenate([self.hits, hits[new_h]])
-            self.hit_keys = np.concatenate([self.hit_keys, hit_keys[new_h]])
+            leaf.hits = np.concatenate([self.hits, hits[new_h]])
+            leaf.hit_keys = np.concatenate([self.hit_keys, hit_keys[new_h]])
         if new_f.size:
-            self.free_start = np.concatenate([self.free_start, free_start[new_f]])
-            self.free_end = np.concatenate([self.free_end, free_end[new_f]])
-            self.free_keys = np.concatenate([self.free_keys, free_keys[new_f]])
-        return int(new_h.size + new_f.size)
+            leaf.free_start = np.concatenate([self.free_start, free_start[new_f]])
+            leaf.free_end = np.concatenate([self.free_end, free_end[new_f]])
+            leaf.free_keys = np.concatenate([self.free_keys, free_keys[new_f]])
+        return leaf, int(new_h.size + new_f.size)
 
 
 class LeafBacking(Protocol):
-    """Where evicted leaves live: the map file (:class:`octolgp.mapfile.MapFile`)."""
+    """Where evicted leaves live: the map file (:class:`octolgp.persist.mapfile.MapFile`)."""
 
     def read_leaf(self, key: int) -> Leaf:
         """The persisted leaf ``key``."""
+        ...
+
+
+@dataclass(frozen=True)
+class MapHeader:
+    """The map state a map file records besides its leaves and journal.
+
+    Attributes
+    ----------
+    config : MapConfig
+    hyperparameters : Hyperparameters or None
+        ``None`` while the map is still buffering scans to learn them.
+    n_scans : int
+        Scans inserted.
+    leaf_keys : list of int
+        Packed keys of the persisted leaves.
+    """
+
+    config: MapConfig
+    hyperparameters: Hyperparameters | None
+    n_scans: int
+    leaf_keys: list[int]
+
+
+class MapStorage(LeafBacking, Protocol):
+    """What an online map needs of its file (:class:`octolgp.persist.mapfile.MapFile`).
+
+    The file records the map's state; it never reads or builds a map object.
+    """
+
+    path: Path
+    header: MapHeader
+
+    def scans(self, start: int = 0) -> Iterator[Scan]:
+        """The journaled scans with index > ``start``, in order."""
+        ...
+
+    def commit(
+        self,
+        leaves: Iterable[tuple[int, Leaf]],
+        journal: Iterable[tuple[int, Scan]],
+        hyperparameters: Hyperparameters | None,
+        n_scans: int,
+    ) -> list[int]:
+        """Write one step durably (all or nothing); returns the leaf keys written."""
+        ...
+
+    def close(self) -> None:
+        """Release the file (a temporary spill file is deleted)."""
         ...
 
 
@@ -203,7 +274,29 @@ class LeafStore:
             return leaf
         return self.backing.read_leaf(key)
 
-    def put(self, key: int, leaf: Leaf) -> None:
+    def apply(
+        self,
+        leaves: Iterable[tuple[int, Leaf]],
+        touched: Iterable[int] = (),
+        scan: int | None = None,
+    ) -> None:
+        """Write one step's result: swap in new leaves and mark touched ones as used.
+
+        The only writer of leaf state. ``leaves`` are inserted or replaced and, with a
+        ``scan`` number, stamped ``touched = scan``; the other ``touched`` keys get the
+        stamp only (it orders least-recently-used eviction under a memory budget).
+        """
+        if scan is not None:
+            for key in touched:  # one iteration per touched leaf
+                leaf = self.get(key)
+                if leaf is not None:
+                    leaf.touched = scan
+        for key, leaf in leaves:  # one iteration per new leaf
+            if scan is not None:
+                leaf.touched = scan
+            self._put(key, leaf)
+
+    def _put(self, key: int, leaf: Leaf) -> None:
         """Insert or replace a leaf (dirty until :meth:`persisted`)."""
         key = int(key)
         old = self._leaves.get(key)

@@ -15,12 +15,16 @@ Tables
 
 Durability
 ----------
-Every :meth:`OnlineMap.insert_scan` of a map with a file ends in one SQLite
+Every ``OnlineMap.insert_scan`` of a map with a file ends in one SQLite
 transaction (WAL journal, ``synchronous=FULL``) that writes the scan's journal row,
 every leaf it changed and the scan count, so after ``kill -9`` at any moment the
 file holds exactly the scans whose ``insert_scan`` returned, and a scan in flight
 is wholly in or wholly out. Opening never modifies a file that is not an
 octolgp map.
+
+This module reads and writes map state (config, hyperparameters, scan count, leaves,
+journal); it never constructs or inspects a map object. The map holds a
+:class:`MapFile` through the :class:`octolgp.mapping.store.MapStorage` protocol.
 """
 
 from __future__ import annotations
@@ -32,17 +36,14 @@ import struct
 import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import MapFileNotFound, OctolgpError
-from octolgp.mapping.store import Leaf
+from octolgp.mapping.store import Leaf, MapHeader
 from octolgp.scan import Scan
-
-if TYPE_CHECKING:
-    from octolgp.mapping.online import OnlineMap
 
 FORMAT = "octolgp-map"
 VERSION = 2
@@ -148,69 +149,96 @@ class _Transaction:
 
 
 class MapFile:
-    """Write-through persistence of an :class:`OnlineMap` in one SQLite file.
+    """Write-through persistence of an online map in one SQLite file.
 
-    It is also the map's :class:`~octolgp.store.LeafBacking`: evicted leaves are
-    read back from it.
+    It is also the store's :class:`~octolgp.mapping.store.LeafBacking`: evicted leaves
+    are read back from it.
+
+    Attributes
+    ----------
+    path : Path
+    header : MapHeader
+        The state recorded when the file was created or opened.
+    temporary : bool
+        A spill file, deleted on :meth:`close`.
     """
 
-    def __init__(self, path: Path, con: sqlite3.Connection, temporary: bool = False) -> None:
+    def __init__(
+        self, path: Path, con: sqlite3.Connection, header: MapHeader, temporary: bool = False
+    ) -> None:
         self.path = path
         self._con = con
+        self.header = header
         self.temporary = temporary
 
     # ------------------------------------------------------------------ create / open
     @classmethod
-    def create(cls, path: str | Path, m: OnlineMap, temporary: bool = False) -> MapFile:
-        """Start a new map file for ``m``; refuses to overwrite an existing file."""
+    def create(
+        cls,
+        path: str | Path,
+        config: MapConfig,
+        hyperparameters: Hyperparameters | None = None,
+        n_scans: int = 0,
+        leaves: Iterable[tuple[int, Leaf]] = (),
+        temporary: bool = False,
+    ) -> MapFile:
+        """Start a new map file; refuses to overwrite an existing file.
+
+        Raises
+        ------
+        OctolgpError
+            If ``path`` exists or cannot be created.
+        """
         p = Path(path)
         if p.exists() and not temporary:
             raise OctolgpError(
                 f"path {str(p)!r} already exists; reopen it with OnlineMap.open or remove it"
             )
+        keys: list[int] = []
         try:
             con = sqlite3.connect(str(p), isolation_level=None, check_same_thread=False)
             _durable(con)
-            cls._schema(con, m)
+            with _Transaction(con):
+                con.execute("CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+                con.execute("CREATE TABLE leaves(key INTEGER PRIMARY KEY, data BLOB NOT NULL)")
+                con.execute(
+                    "CREATE TABLE scans(idx INTEGER PRIMARY KEY, dim INTEGER NOT NULL, "
+                    "origin BLOB NOT NULL, points BLOB NOT NULL, max_range REAL, stamp REAL)"
+                )
+                rows = [
+                    ("format", FORMAT),
+                    ("version", str(VERSION)),
+                    ("config", json.dumps(config.to_dict())),
+                    ("hyperparameters", _hp_json(hyperparameters)),
+                    ("n_scans", str(n_scans)),
+                ]
+                con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
+                for k, leaf in leaves:  # one row per leaf
+                    con.execute("INSERT INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf)))
+                    keys.append(k)
         except sqlite3.Error as exc:
             raise OctolgpError(f"path {str(p)!r}: cannot create the map file ({exc})") from None
-        return cls(p, con, temporary)
+        return cls(p, con, MapHeader(config, hyperparameters, n_scans, keys), temporary)
 
     @classmethod
-    def spill(cls, m: OnlineMap) -> MapFile:
+    def spill(cls, config: MapConfig) -> MapFile:
         """A spill file for an in-memory map with a memory budget (deleted on close)."""
         fd, name = tempfile.mkstemp(prefix="octolgp-", suffix=".octolgp")
         os.close(fd)
         os.unlink(name)
-        return cls.create(name, m, temporary=True)
-
-    @staticmethod
-    def _schema(con: sqlite3.Connection, m: OnlineMap) -> None:
-        with _Transaction(con):
-            con.execute("CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL)")
-            con.execute("CREATE TABLE leaves(key INTEGER PRIMARY KEY, data BLOB NOT NULL)")
-            con.execute(
-                "CREATE TABLE scans(idx INTEGER PRIMARY KEY, dim INTEGER NOT NULL, "
-                "origin BLOB NOT NULL, points BLOB NOT NULL, max_range REAL, stamp REAL)"
-            )
-            rows = [
-                ("format", FORMAT),
-                ("version", str(VERSION)),
-                ("config", json.dumps(m.config.to_dict())),
-                ("hyperparameters", _hp_json(m.hyperparameters)),
-                ("n_scans", str(m.n_scans)),
-            ]
-            con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
-            con.executemany(
-                "INSERT INTO leaves VALUES (?, ?)",
-                ((k, encode_leaf(leaf)) for k, leaf in m.store.items()),
-            )
+        return cls.create(name, config, temporary=True)
 
     @classmethod
-    def open(cls, path: str | Path) -> OnlineMap:
-        """Load a map file (leaves lazily) and keep writing through to it."""
-        from octolgp.mapping.online import OnlineMap
+    def open(cls, path: str | Path) -> MapFile:
+        """Open a map file (leaves are read lazily); its state is in :attr:`header`.
 
+        Raises
+        ------
+        MapFileNotFound
+            If the file does not exist.
+        OctolgpError
+            If it is not an octolgp map file or is corrupt.
+        """
         p = Path(path)
         if not p.is_file():
             raise MapFileNotFound(f"map file {str(p)!r} does not exist")
@@ -244,15 +272,7 @@ class MapFile:
             raise
         except (sqlite3.Error, KeyError, ValueError, TypeError, OSError) as exc:
             raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
-        m = OnlineMap(config, _opened=True)  # no spill file: this file is the backing
-        m.hyperparameters = hp
-        m.n_scans = n_scans
-        f = cls(p, con)
-        m._file = f
-        m.store.attach(f, keys)
-        if m.hyperparameters is None and not keys:  # the scans were buffered for learning
-            m._buffer = list(f.scans())
-        return m
+        return cls(p, con, MapHeader(config, hp, n_scans, keys))
 
     # ------------------------------------------------------------------ reads
     def read_leaf(self, key: int) -> Leaf:
@@ -283,7 +303,11 @@ class MapFile:
 
     # ------------------------------------------------------------------ writes
     def commit(
-        self, m: OnlineMap, keys: Iterable[int], journal: Iterable[tuple[int, Scan]]
+        self,
+        leaves: Iterable[tuple[int, Leaf]],
+        journal: Iterable[tuple[int, Scan]],
+        hyperparameters: Hyperparameters | None,
+        n_scans: int,
     ) -> list[int]:
         """Write scans, leaves, hyperparameters and the scan count in one transaction.
 
@@ -295,19 +319,19 @@ class MapFile:
                 "INSERT INTO scans VALUES (?, ?, ?, ?, ?, ?)",
                 (_scan_row(i, s) for i, s in journal),
             )
-            for k in keys:  # one row per changed leaf
-                leaf = m.store.get(k)
-                if leaf is not None:
-                    con.execute(
-                        "INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf))
-                    )
-                    written.append(k)
+            for k, leaf in leaves:  # one row per changed leaf
+                con.execute("INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf)))
+                written.append(k)
             con.execute(
-                "UPDATE meta SET value=? WHERE key='hyperparameters'",
-                (_hp_json(m.hyperparameters),),
+                "UPDATE meta SET value=? WHERE key='hyperparameters'", (_hp_json(hyperparameters),)
             )
-            con.execute("UPDATE meta SET value=? WHERE key='n_scans'", (str(m.n_scans),))
+            con.execute("UPDATE meta SET value=? WHERE key='n_scans'", (str(n_scans),))
         return written
+
+    def finish(self) -> None:
+        """Fold the write-ahead log into the file and leave it in rollback-journal mode."""
+        self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
+        self._con.execute("PRAGMA journal_mode=DELETE")
 
     def close(self) -> None:
         """Close the connection (and delete a temporary spill file)."""
@@ -317,21 +341,41 @@ class MapFile:
                 Path(str(self.path) + suffix).unlink(missing_ok=True)
 
 
-def save_map(m: OnlineMap, path: str | Path) -> None:
-    """Write ``m`` to a new file at ``path``, atomically (temporary file, then rename)."""
+def write_map(
+    path: str | Path,
+    config: MapConfig,
+    hyperparameters: Hyperparameters | None,
+    n_scans: int,
+    leaves: Iterable[tuple[int, Leaf]],
+    scans: Iterable[Scan] = (),
+) -> None:
+    """Write a whole map to a new file at ``path``, atomically (temporary file, then rename).
+
+    Parameters
+    ----------
+    path : str or Path
+        Replaced if it exists.
+    config, hyperparameters, n_scans
+        The map's state.
+    leaves : iterable of (int, Leaf)
+        Every leaf, by packed key.
+    scans : iterable of Scan
+        The journal (scans 1, 2, ...): all ``n_scans`` of them, or none.
+
+    Raises
+    ------
+    OctolgpError
+        If the file cannot be written.
+    """
     p = Path(path)
-    m.flush()
     tmp = p.with_name(p.name + ".tmp")
     for suffix in ("", "-wal", "-shm"):
         Path(str(tmp) + suffix).unlink(missing_ok=True)
     try:
-        f = MapFile.create(tmp, m, temporary=True)
+        f = MapFile.create(tmp, config, hyperparameters, n_scans, leaves, temporary=True)
         f.temporary = False
-        src = m._file
-        if src is not None:  # copy the scan journal (an in-memory map keeps none)
-            f.commit(m, [], ((i + 1, s) for i, s in enumerate(src.scans())))
-        f._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-        f._con.execute("PRAGMA journal_mode=DELETE")
+        f.commit([], enumerate(scans, start=1), hyperparameters, n_scans)
+        f.finish()
         f.close()
         os.replace(tmp, p)
     except (sqlite3.Error, OSError) as exc:

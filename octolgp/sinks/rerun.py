@@ -33,10 +33,10 @@ import rerun.blueprint as rrb
 import rerun.components as rrc
 
 from octolgp.scan import FloatArray, Scan
+from octolgp.sinks.base import LeafView, MapChange
 
 if TYPE_CHECKING:
-    from octolgp.mapping.online import OnlineMap, ScanUpdate
-    from octolgp.mapping.store import Leaf
+    from octolgp.mapping.update import ScanUpdate
 
 
 def _grey(prob: np.ndarray) -> np.ndarray:
@@ -67,7 +67,7 @@ def default_blueprint(dim: int) -> Any:
 
 
 class RerunSink:
-    """Logs scans and map updates of an :class:`~octolgp.online.OnlineMap` to a recording.
+    """Logs scans and map updates of an online map to a recording (a :class:`~octolgp.sinks.base.Sink`).
 
     Parameters
     ----------
@@ -95,12 +95,12 @@ class RerunSink:
         self._blueprint = blueprint
         self._tiles: set[str] = set()
 
-    def on_scan(self, m: OnlineMap, scan: Scan, index: int) -> None:
+    def on_scan(self, scan: Scan, index: int) -> None:
         """Log an accepted scan (pose, points, exact copy, optional rays)."""
         from octolgp.io.rrd import log_scan
 
         if self._blueprint:
-            self.rec.send_blueprint(default_blueprint(m.config.dim))
+            self.rec.send_blueprint(default_blueprint(scan.dim))
             self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
             self._blueprint = False
         log_scan(self.rec, scan, index)
@@ -111,36 +111,32 @@ class RerunSink:
             strips = np.stack([np.zeros_like(local), local], axis=1).astype(np.float32)
             self.rec.log("world/sensor/rays", rr.LineStrips3D(strips, radii=0.005))
 
-    def on_update(self, m: OnlineMap, update: ScanUpdate, keys: list[int]) -> None:
+    def on_update(self, update: ScanUpdate, change: MapChange) -> None:
         """Re-log the refitted leaves and the per-scan metrics."""
         rec = self.rec
         rec.set_time("scan", sequence=update.scan)
-        for key in keys:  # one iteration per refitted leaf
-            leaf = m.store.get(key)
-            if leaf is not None:
-                self._log_leaf(m, key, leaf)
+        for leaf in change.leaves:  # one iteration per refitted leaf
+            self._log_leaf(change, leaf)
         rec.log("metrics/insert_seconds", rr.Scalars(update.seconds))
         rec.log("metrics/touched_leaves", rr.Scalars(float(update.touched_leaves)))
         rec.log("metrics/refit_leaves", rr.Scalars(float(update.refit_leaves)))
         rec.log("metrics/leaves", rr.Scalars(float(update.n_leaves)))
         rec.log("metrics/memory_mb", rr.Scalars(update.memory_bytes / 1e6))
 
-    def _log_leaf(self, m: OnlineMap, key: int, leaf: Leaf) -> None:
-        grid = m.grid
-        path = f"world/map/leaves/{key}"
-        if leaf.pruned and m.config.dim == 3:
-            lo, hi = grid.box(leaf.index[None, :])
-            self._log_box(path, lo, hi, float(leaf.prob[0]))
+    def _log_leaf(self, change: MapChange, leaf: LeafView) -> None:
+        path = f"world/map/leaves/{leaf.key}"
+        if leaf.pruned and change.dim == 3:
+            self._log_box(path, leaf.lo, leaf.hi, float(leaf.prob[0]))
             if self.uncertainty:  # a pruned leaf is confident: no variance layer
-                self.rec.log(f"world/map/variance/{key}", rr.Clear(recursive=False))
+                self.rec.log(f"world/map/variance/{leaf.key}", rr.Clear(recursive=False))
             return
-        centres = m.voxel_centres(leaf)
+        centres = leaf.centres
         prob = leaf.prob.astype(np.float64)
-        if m.config.dim == 2:
-            self._log_tile(path, m, leaf, prob)
+        if change.dim == 2:
+            self._log_tile(path, change.side, leaf, prob)
         else:
             occ = prob > 0.5
-            half = np.full((int(occ.sum()), 3), 0.5 * grid.resolution)
+            half = np.full((int(occ.sum()), 3), 0.5 * change.resolution)
             self.rec.log(
                 path,
                 rr.Boxes3D(
@@ -151,27 +147,24 @@ class RerunSink:
                 ),
             )
         if self.uncertainty:
-            sf2 = m.hyperparameters.signal_variance if m.hyperparameters else 1.0
-            pos = centres if m.config.dim == 3 else np.c_[centres, np.zeros(centres.shape[0])]
+            pos = centres if change.dim == 3 else np.c_[centres, np.zeros(centres.shape[0])]
             self.rec.log(
-                f"world/map/variance/{key}",
+                f"world/map/variance/{leaf.key}",
                 rr.Points3D(
                     pos,
-                    radii=0.3 * grid.resolution,
-                    colors=_heat(leaf.var.astype(np.float64) / sf2),
+                    radii=0.3 * change.resolution,
+                    colors=_heat(leaf.var.astype(np.float64) / change.signal_variance),
                 ),
             )
 
-    def _log_tile(self, path: str, m: OnlineMap, leaf: Leaf, prob: np.ndarray) -> None:
+    def _log_tile(self, path: str, side: int, leaf: LeafView, prob: np.ndarray) -> None:
         """A 2D leaf as one textured quad at z = 0: a side × side grey image.
 
         The quad, its triangles, texture coordinates and texture format are
         logged once, static; each refit logs only the texture bytes (3 per voxel).
         """
-        side = m.grid.side
         if path not in self._tiles:
-            lo, hi = m.grid.box(leaf.index[None, :])
-            (x0, y0), (x1, y1) = lo[0], hi[0]
+            (x0, y0), (x1, y1) = leaf.lo, leaf.hi
             quad = np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]])
             self.rec.log(
                 path,
