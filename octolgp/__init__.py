@@ -2,7 +2,13 @@
 
 Kim & Kim, "Continuous Occupancy Maps using Overlapping Local Gaussian Processes",
 IROS 2013, made online and OctoMap-style.
+
+The package logs to ``logging.getLogger("octolgp")`` (learnt hyperparameters, jitter
+repairs, skipped input, truncated recordings); it has a ``NullHandler``, so nothing
+is printed unless the application configures logging.
 """
+
+import logging
 
 from octolgp.batch.build import build_map
 from octolgp.config import (
@@ -21,6 +27,8 @@ from octolgp.mapping.online import OnlineMap, ScanUpdate
 from octolgp.scan import Scan
 
 __version__ = "0.1.0"
+
+logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 __all__ = [
     "Hyperparameters",

@@ -16,7 +16,6 @@ from threadpoolctl import threadpool_limits
 
 from octolgp.batch.dask import dask_client
 from octolgp.batch.gp import GlobalGPMap, fit_global_gp
-from octolgp.batch.gpmap import GPMap
 from octolgp.batch.leafmap import TASK_ITEMS, build_tiled
 from octolgp.batch.lgp import LocalGPMap
 from octolgp.batch.mgp import MixtureGPMap, make_gate
@@ -143,7 +142,7 @@ def _fit_clusters_on(
 
 def _build_gp_map(
     scan_list: list[Scan], config: MapConfig, method: str, n_jobs: int, scheduler: Any = None
-) -> GPMap:
+) -> LocalGPMap | GlobalGPMap | MixtureGPMap:
     """Training data, clustering, learning (if needed) and fitting, each timed."""
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -159,7 +158,7 @@ def _build_gp_map(
     timings["learning"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    result: GPMap
+    result: LocalGPMap | GlobalGPMap | MixtureGPMap
     if method == "lgp":
         if scheduler is None:
             gps = fit_clusters(data, clusters, config, hp, n_jobs=n_jobs)
