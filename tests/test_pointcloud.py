@@ -13,6 +13,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.geometry.rotations import matrix_to_quaternion, rpy_to_matrix
 from octolgp.io.octomap_graph import (
     GraphReader,
     ScanDatReader,
@@ -22,7 +23,6 @@ from octolgp.io.octomap_graph import (
 )
 from octolgp.io.pcd import PcdReader, looks_like_pcd, lzf_decompress, read_pcd_header
 from octolgp.io.ply import PlyReader, looks_like_ply
-from octolgp.io.pointcloud import quaternion_from_rotation, rotation_from_rpy
 from octolgp.io.threedtk import ThreeDTKReader
 from octolgp.scan import Scan
 
@@ -328,7 +328,7 @@ def test_scan_dat_nodes_give_world_points() -> None:
 
 
 def test_rpy_matches_octomap() -> None:
-    R = rotation_from_rpy(0.3, -0.5, 1.2)
+    R = rpy_to_matrix(0.3, -0.5, 1.2)
     expected = Rotation.from_euler("ZYX", [1.2, -0.5, 0.3]).as_matrix()
     np.testing.assert_allclose(R, expected, atol=1e-12)
     pyoctomap = pytest.importorskip("pyoctomap")
@@ -423,7 +423,7 @@ def test_graph_point_layout_is_octomap_pointcloud(tmp_path: Path) -> None:
 
 def test_graph_rotation_pose(tmp_path: Path) -> None:
     T = np.eye(4)
-    T[:3, :3] = rotation_from_rpy(0.1, 0.2, -0.7)
+    T[:3, :3] = rpy_to_matrix(0.1, 0.2, -0.7)
     T[:3, 3] = [3, 2, 1]
     scan = Scan(T[:3, 3], np.loadtxt(DATA / "scan_small.dat")[:50])
     path = tmp_path / "r.graph"
@@ -432,7 +432,7 @@ def test_graph_rotation_pose(tmp_path: Path) -> None:
     local = np.frombuffer(raw, dtype=[("n", "<i4"), ("p", "<f8", (3,))], count=50, offset=8)
     np.testing.assert_allclose(local["p"] @ T[:3, :3].T + T[:3, 3], scan.points, atol=1e-12)
     q = struct.unpack_from("<4d", raw, 8 + 28 * 50 + 28 + 4)
-    assert np.allclose(q, quaternion_from_rotation(T[:3, :3]))
+    assert np.allclose(q, matrix_to_quaternion(T[:3, :3], order="wxyz"))
     np.testing.assert_allclose(_one(GraphReader(path)).points, scan.points, atol=1e-12)
 
 

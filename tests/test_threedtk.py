@@ -17,10 +17,11 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.geometry.rotations import euler_xyz_to_matrix
 from octolgp.io import detect_format, load_scans, read_3dtk
 from octolgp.io import threedtk as threedtk_module
 from octolgp.io.threedtk import MIN_RANGE, NO_RETURN_RANGE, ThreeDTKReader
-from octolgp.io.threedtk_pose import LH_TO_RH, euler_to_rotation, read_frames, read_pose
+from octolgp.io.threedtk_pose import LH_TO_RH, read_frames, read_pose
 from octolgp.scan import Scan
 
 FIXTURE = Path(__file__).resolve().parent / "data" / "3dtk"
@@ -156,7 +157,9 @@ def test_euler_matrix_is_3dtk_euler_to_matrix4() -> None:
     m += [-cy * sz, -sx * sy * sz + cx * cz, cx * sy * sz + sx * cz]
     m += [sy, -sx * cy, cx * cy]
     expected = np.reshape(m, (3, 3), order="F")
-    np.testing.assert_allclose(euler_to_rotation(np.degrees(theta)), expected, atol=1e-15)
+    np.testing.assert_allclose(
+        euler_xyz_to_matrix(np.degrees(theta), degrees=True), expected, atol=1e-15
+    )
 
 
 def test_registered_scans_overlap(scans: list[Scan]) -> None:

@@ -31,8 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
+from octolgp.geometry.rotations import matrix_to_quaternion, rpy_to_matrix
 from octolgp.io.octomap_graph import write_graph
-from octolgp.io.pointcloud import quaternion_from_rotation, rotation_from_rpy
 from octolgp.io.threedtk import ThreeDTKReader
 from octolgp.scan import Scan
 
@@ -115,7 +115,7 @@ def main() -> None:
         lines = [next(fh) for _ in range(2000)]
     (OUT / "scan_small.dat").write_text("".join(lines))
     world = np.loadtxt(lines)
-    t, R = np.array(NODE1_POSE[:3]), rotation_from_rpy(*NODE1_POSE[3:])
+    t, R = np.array(NODE1_POSE[:3]), rpy_to_matrix(*NODE1_POSE[3:])
     local = (world[1000:] - t) @ R
     text = "# scan_small.dat as two OctoMap NODE scans (tools/make_pointcloud_fixtures.py)\n"
     text += "NODE 0 0 0 0 0 0\n" + "".join(lines[:1000])
@@ -132,7 +132,7 @@ def main() -> None:
     sensor = ((world - pose[:3, 3]) @ pose[:3, :3]).astype(np.float32)
     intensity = np.linalg.norm(sensor.astype(np.float64), axis=1).astype(np.float32)
     table = np.column_stack([sensor, intensity]).astype(np.float32)
-    viewpoint = [*pose[:3, 3].tolist(), *quaternion_from_rotation(pose[:3, :3])]
+    viewpoint = [*pose[:3, 3].tolist(), *matrix_to_quaternion(pose[:3, :3], order="wxyz").tolist()]
     n = len(table)
     (OUT / "cloud_ascii.pcd").write_bytes(pcd_header(n, viewpoint, "ascii") + ascii_rows(table))
     (OUT / "cloud_binary.pcd").write_bytes(

@@ -40,6 +40,7 @@ from typing import IO
 import numpy as np
 
 from octolgp.errors import OctolgpError
+from octolgp.geometry.rotations import matrix_to_quaternion, quaternion_to_matrix, rpy_to_matrix
 from octolgp.io.pointcloud import (
     CHUNK_LINES,
     CHUNK_POINTS,
@@ -47,9 +48,6 @@ from octolgp.io.pointcloud import (
     CloudReader,
     open_text,
     parse_ascii,
-    quaternion_from_rotation,
-    rotation_from_quaternion,
-    rotation_from_rpy,
 )
 from octolgp.scan import FloatArray, Scan
 
@@ -168,7 +166,7 @@ class ScanDatReader(CloudReader):
         if len(values) != 6 or not all(map(math.isfinite, values)):
             self.bad_line(self.path, line_no, f"expected 'NODE x y z roll pitch yaw': {line!r}")
             return None
-        return np.array(values[:3]), rotation_from_rpy(*values[3:])
+        return np.array(values[:3]), rpy_to_matrix(*values[3:])
 
     def _generate(self) -> Generator[Scan, None, None]:
         pose: tuple[FloatArray, FloatArray] | None = (np.zeros(3), np.eye(3))
@@ -300,7 +298,7 @@ class GraphReader(CloudReader):
         if not all(map(math.isfinite, (x, y, z, *q))) or abs(math.hypot(*q) - 1) > 1e-3:
             raise self._fail(fh, f"node {index}: pose is not finite or not a unit quaternion")
         self.node_ids.append(node_id)
-        R = rotation_from_quaternion(*q)
+        R = quaternion_to_matrix(q, order="wxyz")
         return self.make_scan(self.path, f": node {index}", np.array([x, y, z]), blocks, R)
 
     def _generate(self) -> Generator[Scan, None, None]:
@@ -368,7 +366,8 @@ def write_graph(
             rec["p"] = (scan.points - T[:3, 3]) @ R
             fh.write(_U32.pack(len(scan)))
             fh.write(rec.tobytes())
-            fh.write(_POSE.pack(3, *T[:3, 3].tolist(), 4, *quaternion_from_rotation(R)))
+            q = matrix_to_quaternion(R, order="wxyz")
+            fh.write(_POSE.pack(3, *T[:3, 3].tolist(), 4, *q.tolist()))
             fh.write(_U32.pack(i))
         fh.write(_U32.pack(0))
 

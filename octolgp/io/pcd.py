@@ -35,6 +35,7 @@ from typing import IO
 import numpy as np
 
 from octolgp.errors import OctolgpError
+from octolgp.geometry.rotations import quaternion_to_matrix
 from octolgp.io.pointcloud import (
     CHUNK_POINTS,
     READ_ERRORS,
@@ -44,7 +45,6 @@ from octolgp.io.pointcloud import (
     parse_ascii,
     read_exact_lines,
     read_header,
-    rotation_from_quaternion,
 )
 from octolgp.scan import FloatArray, Scan
 
@@ -186,7 +186,7 @@ def _parse_header(fh: IO[bytes]) -> PcdHeader:
             raise OctolgpError(f"VIEWPOINT is not numeric: {' '.join(vp)!r}") from None
         if len(viewpoint) != 7 or not all(map(math.isfinite, viewpoint)):
             raise OctolgpError(f"VIEWPOINT needs 7 finite numbers, got {' '.join(vp)!r}")
-        if not any(viewpoint[3:]):
+        if not np.linalg.norm(viewpoint[3:]) > 0:
             raise OctolgpError("VIEWPOINT quaternion is zero")
     except OctolgpError as exc:
         raise OctolgpError(f"{where}: {exc}") from None
@@ -343,7 +343,7 @@ class PcdReader(CloudReader):
                 block = block[~nan]
             kept.append(block)
         vp = header.viewpoint
-        R = rotation_from_quaternion(*vp[3:])
+        R = quaternion_to_matrix(vp[3:], order="wxyz")
         return self.make_scan(path, "", np.array(vp[:3]), kept, R)
 
     def _read_ascii(

@@ -11,7 +11,9 @@ The readers themselves are in :mod:`octolgp.io.pcd`, :mod:`octolgp.io.ply` and
   naming the file and the line, point or byte offset.
 - :func:`parse_ascii`, which parses ``x y z``-style lines with one :func:`numpy.loadtxt` call per
   chunk and bisects a failing chunk down to its malformed lines.
-- Rotations: Hamilton quaternions ``(w, x, y, z)`` and OctoMap's roll/pitch/yaw.
+
+The readers' rotations (quaternions, OctoMap's roll/pitch/yaw) are in
+:mod:`octolgp.geometry.rotations`.
 """
 
 from __future__ import annotations
@@ -39,11 +41,8 @@ __all__ = [
     "list_cloud_files",
     "open_text",
     "parse_ascii",
-    "quaternion_from_rotation",
     "read_exact_lines",
     "read_header",
-    "rotation_from_quaternion",
-    "rotation_from_rpy",
 ]
 
 H = TypeVar("H")
@@ -105,78 +104,6 @@ def list_cloud_files(path: Path, suffix: str, what: str) -> tuple[Path, ...]:
             raise OctolgpError(f"{what} scans: no {suffix} files in {str(path)!r}")
         return tuple(files)
     raise OctolgpError(f"{what} scans: {str(path)!r} is neither a file nor a directory")
-
-
-def rotation_from_quaternion(w: float, x: float, y: float, z: float) -> FloatArray:
-    """Rotation matrix of the Hamilton quaternion ``w + xi + yj + zk`` (normalised first).
-
-    Returns
-    -------
-    ndarray of shape (3, 3)
-        ``R`` with ``p_parent = R @ p_child``.
-
-    Raises
-    ------
-    OctolgpError
-        On a non-finite or zero quaternion.
-    """
-    q = np.array([w, x, y, z], dtype=np.float64)
-    n = float(np.linalg.norm(q))
-    if not np.isfinite(q).all() or n == 0.0:
-        raise OctolgpError(f"quaternion {tuple(q.tolist())} is not a rotation")
-    w, x, y, z = (q / n).tolist()
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def quaternion_from_rotation(R: FloatArray) -> tuple[float, float, float, float]:
-    """Unit Hamilton quaternion ``(w, x, y, z)``, ``w >= 0``, of a rotation matrix (3, 3)."""
-    m = np.asarray(R, dtype=np.float64)
-    # Shepperd's method: pivot on the largest of w², x², y², z².
-    t = np.array(
-        [
-            1 + m[0, 0] + m[1, 1] + m[2, 2],
-            1 + m[0, 0] - m[1, 1] - m[2, 2],
-            1 - m[0, 0] + m[1, 1] - m[2, 2],
-            1 - m[0, 0] - m[1, 1] + m[2, 2],
-        ]
-    )
-    k = int(np.argmax(t))
-    s = 0.5 / math.sqrt(max(float(t[k]), 1e-300))
-    if k == 0:
-        q = [0.25 / s, (m[2, 1] - m[1, 2]) * s, (m[0, 2] - m[2, 0]) * s, (m[1, 0] - m[0, 1]) * s]
-    elif k == 1:
-        q = [(m[2, 1] - m[1, 2]) * s, 0.25 / s, (m[0, 1] + m[1, 0]) * s, (m[0, 2] + m[2, 0]) * s]
-    elif k == 2:
-        q = [(m[0, 2] - m[2, 0]) * s, (m[0, 1] + m[1, 0]) * s, 0.25 / s, (m[1, 2] + m[2, 1]) * s]
-    else:
-        q = [(m[1, 0] - m[0, 1]) * s, (m[0, 2] + m[2, 0]) * s, (m[1, 2] + m[2, 1]) * s, 0.25 / s]
-    qa = np.array(q) / np.linalg.norm(q)
-    if qa[0] < 0:
-        qa = -qa
-    return float(qa[0]), float(qa[1]), float(qa[2]), float(qa[3])
-
-
-def rotation_from_rpy(roll: float, pitch: float, yaw: float) -> FloatArray:
-    """OctoMap's ``pose6d``/``Quaternion(roll, pitch, yaw)`` rotation, radians.
-
-    ``R = Rz(yaw) @ Ry(pitch) @ Rx(roll)`` (``octomap/src/math/Quaternion.cpp``), shape (3, 3).
-    """
-    cr, sr = math.cos(roll), math.sin(roll)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cy, sy = math.cos(yaw), math.sin(yaw)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
 
 
 def _parse_block(

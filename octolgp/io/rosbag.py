@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.geometry.rotations import quaternion_to_matrix
 from octolgp.io.base import ScanStream
 from octolgp.io.carmen import NO_RETURN_MARGIN
 from octolgp.scan import FloatArray, Scan
@@ -138,13 +139,8 @@ def _transform(translation: Any, rotation: Any) -> FloatArray:
     norm = float(np.linalg.norm(q))
     if norm < 1e-6:
         raise _BadMessageError("zero quaternion")
-    x, y, z, w = q / norm
     T = np.eye(4)
-    T[:3, :3] = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ]
+    T[:3, :3] = quaternion_to_matrix(q, order="xyzw")
     T[:3, 3] = t
     return T
 

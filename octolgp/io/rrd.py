@@ -52,6 +52,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.geometry.rotations import axis_angle_to_matrix, quaternion_to_matrix
 from octolgp.io.base import ScanStream
 from octolgp.scan import FloatArray, Scan
 
@@ -269,31 +270,6 @@ def _data_columns(rb: Any) -> dict[str, Any]:
 # --------------------------------------------------------------------------- transforms
 
 
-def _quaternion_matrices(q: FloatArray) -> FloatArray:
-    """Rotation matrices ``(m, 3, 3)`` of quaternions ``(m, 4)`` in xyzw order."""
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(norm > 0, q / np.where(norm > 0, norm, 1.0), [0.0, 0.0, 0.0, 1.0])
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    ).transpose(2, 0, 1)
-
-
-def _axis_angle_matrices(axis: FloatArray, angle: FloatArray) -> FloatArray:
-    """Rodrigues' formula: ``R = I + sin(a) K + (1 - cos(a)) K^2`` for unit axes ``(m, 3)``."""
-    norm = np.linalg.norm(axis, axis=1, keepdims=True)
-    k = np.where(norm > 0, axis / np.where(norm > 0, norm, 1.0), 0.0)
-    K = np.zeros((len(k), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K -= K.transpose(0, 2, 1)
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * K + (1 - c) * (K @ K)
-
-
 def _transform_rows(cols: dict[str, Any]) -> tuple[FloatArray, NDArray[np.bool_], bool]:
     """The ``Transform3D`` rows of a chunk as parent-from-child matrices ``(rows, 4, 4)``.
 
@@ -328,10 +304,11 @@ def _transform_rows(cols: dict[str, Any]) -> tuple[FloatArray, NDArray[np.bool_]
         angle = np.zeros(rows)
         axis[has] = _flat(axis_arr, 3)[start[has]]
         angle[has] = np.asarray(angle_arr.to_numpy(zero_copy_only=False), float)[start[has]]
-        then(_axis_angle_matrices(axis, angle), has)
+        then(axis_angle_to_matrix(axis, angle), has)
     if (col := cols.get("Transform3D:quaternion")) is not None:
         q, has = _first_instances(col, 4)
-        then(_quaternion_matrices(q), has)
+        q[~(np.linalg.norm(q, axis=1) > 0)] = (0.0, 0.0, 0.0, 1.0)  # zero or NaN: no rotation
+        then(quaternion_to_matrix(q, order="xyzw"), has)
     if (col := cols.get("Transform3D:scale")) is not None:
         s, has = _first_instances(col, 3)
         then(np.eye(3) * s[:, None, :], has)

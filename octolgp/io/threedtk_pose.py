@@ -6,7 +6,7 @@ coordinates, ``p_world = R p_scan + t``:
 
 - ``scanNNN.pose``: ``tx ty tz`` (cm), then ``θx θy θz`` (degrees), with
   ``R = Rx(θx) Ry(θy) Rz(θz)`` (3DTK ``EulerToMatrix4``; the usual right-hand-rule matrices,
-  applied to left-handed coordinates).
+  applied to left-handed coordinates: :func:`octolgp.geometry.rotations.euler_xyz_to_matrix`).
 - ``scanNNN.frames``: one line per ICP step, a 4x4 matrix stored column-major (OpenGL) followed by
   a colour code; the **last line** is the final registered pose.
 
@@ -27,9 +27,10 @@ from pathlib import Path
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.geometry.rotations import euler_xyz_to_matrix
 from octolgp.scan import FloatArray
 
-__all__ = ["CM", "LH_TO_RH", "euler_to_rotation", "from_3dtk_pose", "read_frames", "read_pose"]
+__all__ = ["CM", "LH_TO_RH", "from_3dtk_pose", "read_frames", "read_pose"]
 
 CM = 0.01
 """Metres per centimetre, 3DTK's unit."""
@@ -39,21 +40,6 @@ LH_TO_RH: FloatArray = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, 1.0, 0
 LH_TO_RH.setflags(write=False)
 
 _ORTHO_TOL = 1e-3  # the files keep 6 significant digits
-
-
-def euler_to_rotation(angles_deg: FloatArray) -> FloatArray:
-    """Return 3DTK's ``R = Rx(θx) Ry(θy) Rz(θz)`` for ``.pose`` angles in degrees, shape (3, 3).
-
-    The matrices are the usual right-hand-rule ones, applied to 3DTK's left-handed coordinates
-    (3DTK ``EulerToMatrix4``).
-    """
-    sx, sy, sz = np.sin(np.radians(angles_deg))
-    cx, cy, cz = np.cos(np.radians(angles_deg))
-    Rx = np.array([[1.0, 0.0, 0.0], [0.0, cx, -sx], [0.0, sx, cx]])
-    Ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
-    Rz = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
-    R: FloatArray = Rx @ Ry @ Rz
-    return R
 
 
 def from_3dtk_pose(T: FloatArray) -> FloatArray:
@@ -118,7 +104,7 @@ def read_pose(path: str | Path) -> FloatArray:
     if len(rows) != 2:
         raise OctolgpError(f"3DTK pose file {p}: expected 2 lines (t in cm, angles in degrees)")
     T = np.eye(4)
-    T[:3, :3] = euler_to_rotation(rows[1][1])
+    T[:3, :3] = euler_xyz_to_matrix(rows[1][1], degrees=True)
     T[:3, 3] = rows[0][1]
     return from_3dtk_pose(T)
 
