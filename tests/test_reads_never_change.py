@@ -20,14 +20,14 @@ import pytest
 
 from octolgp import MapConfig, OnlineMap, Scan
 
-N_SCANS = 46
+N_SCANS = 43
 CONFIG = MapConfig(dim=2, resolution=0.1)
 PROBE = np.array([[0.0, 0.0], [2.9, 0.3], [-1.0, 2.95], [1.5, -1.5], [3.5, 3.5]])
 
 
 def office_scans(n: int = N_SCANS) -> list[Scan]:
-    """A robot circling a 6 x 6 m room with a 0.8 m crate in it; 120 beams per scan."""
-    ang = np.linspace(-np.pi, np.pi, 120, endpoint=False)
+    """A robot circling a 6 x 6 m room with a 0.8 m crate in it; 60 beams per scan."""
+    ang = np.linspace(-np.pi, np.pi, 60, endpoint=False)
     d = np.c_[np.cos(ang), np.sin(ang)]
     lo = np.array([[-3.0, -3.0], [0.6, 0.6]])
     hi = np.array([[3.0, 3.0], [1.4, 1.4]])
@@ -74,7 +74,7 @@ def test_reads_saves_and_exports_never_change_later_inserts(
     m = OnlineMap(CONFIG)
     for k, s in enumerate(scans, start=1):
         m.insert_scan(s)
-        if k in (1, 2, 20, 39, 40, 41, N_SCANS):  # in the learning phase and after
+        if k in (1, 39, 40, 41, N_SCANS):  # in the learning phase and after
             before = (m.hyperparameters, values(m), m.n_scans, m.buffered_scans)
             p1 = m.occupancy(PROBE)
             m.latent(PROBE, interpolate=False)
@@ -103,7 +103,7 @@ def test_provisional_answer_before_any_training_data_is_the_prior() -> None:
     np.testing.assert_array_equal(var, 1.0)
 
 
-@pytest.mark.parametrize("reopen_at", [5, 39, 40, 43])
+@pytest.mark.parametrize("reopen_at", [5, 41])
 def test_save_close_and_reopen_continue_as_the_uninterrupted_map(
     tmp_path: Path, scans: list[Scan], reference: list, reopen_at: int
 ) -> None:
@@ -153,7 +153,7 @@ from octolgp import OnlineMap
 m = OnlineMap(CONFIG, path=sys.argv[1])
 for k, s in enumerate(office_scans(), start=1):
     m.insert_scan(s)
-    if k % 3 == 0:
+    if k in (6, 41):
         m.occupancy([[0.0, 0.0]])  # reads in between, as a user's program makes them
     print(m.n_scans, flush=True)
     if k == int(sys.argv[2]):
@@ -161,7 +161,7 @@ for k, s in enumerate(office_scans(), start=1):
 """
 
 
-@pytest.mark.parametrize("kill_after", [12, 40, 42])
+@pytest.mark.parametrize("kill_after", [12, 40])
 def test_a_killed_map_reopens_as_the_uninterrupted_map(
     tmp_path: Path, scans: list[Scan], reference: list, kill_after: int
 ) -> None:
