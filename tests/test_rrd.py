@@ -18,7 +18,8 @@ import rerun as rr
 
 from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.io import SCAN_FORMATS, detect_format, load_scans
-from octolgp.io.rrd import RrdScanReader, log_scan, read_rrd
+from octolgp.io.rrd_read import RrdScanReader, read_rrd
+from octolgp.io.rrd_write import log_scan
 from octolgp.scan import Scan
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -390,7 +391,7 @@ def test_recording_of_a_killed_writer(tmp_path: Path) -> None:
         + """
 import sys, time
 import rerun as rr
-from octolgp.io.rrd import log_scan
+from octolgp.io.rrd_write import log_scan
 
 rec = rr.RecordingStream("octolgp_killed")
 rec.save(sys.argv[1])

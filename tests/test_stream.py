@@ -19,7 +19,7 @@ from rerun.chunk import RrdReader
 
 from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan, load_scans
 from octolgp.cli import main
-from octolgp.io.rrd import read_rrd
+from octolgp.io.rrd_read import read_rrd
 from octolgp.mapping.online import ScanUpdate
 from octolgp.sinks.rerun import RerunSink
 

@@ -309,7 +309,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     import itertools
 
-    from octolgp.io.rrd import read_rrd
+    from octolgp.io.rrd_read import read_rrd
 
     reader = read_rrd(
         args.recording,

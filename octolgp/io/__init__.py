@@ -8,9 +8,9 @@ Supported formats (``format=`` names):
   (:mod:`octolgp.io.carmen`), streamed line by line.
 - ``"3dtk"``: a directory of 3DTK ``scanNNN.3d[.xz]`` files with ``.frames``/``.pose`` poses, or
   one such file (:mod:`octolgp.io.threedtk`), streamed scan by scan.
-- ``"rrd"``: a Rerun recording ``.rrd`` (:mod:`octolgp.io.rrd`), streamed chunk by chunk: the
-  exact scans that :func:`~octolgp.io.rrd.log_scan` wrote, else the ``Points3D``/``Points2D``
-  rows of any recording posed by its ``Transform3D``. :func:`~octolgp.io.rrd.read_rrd` takes
+- ``"rrd"``: a Rerun recording ``.rrd`` (:mod:`octolgp.io.rrd_read`), streamed chunk by chunk: the
+  exact scans that :func:`~octolgp.io.rrd_write.log_scan` wrote, else the ``Points3D``/``Points2D``
+  rows of any recording posed by its ``Transform3D``. :func:`~octolgp.io.rrd_read.read_rrd` takes
   the options (points entity, pose entity, timeline, ``max_range``).
 - ``"rosbag"``: a ROS 1 ``.bag`` or a ROS 2 bag (directory with ``metadata.yaml``, or its
   ``.db3``/``.mcap``) read with ``rosbags`` (:mod:`octolgp.io.rosbag`): ``LaserScan`` or
@@ -51,7 +51,9 @@ from octolgp.io.octomap_graph import (
 from octolgp.io.pcd import PcdReader, looks_like_pcd, read_pcd
 from octolgp.io.ply import PlyReader, looks_like_ply, read_ply
 from octolgp.io.rosbag import RosbagReader, looks_like_rosbag, read_rosbag
-from octolgp.io.rrd import RrdScanReader, log_scan, looks_like_rrd, read_rrd
+from octolgp.io.rrd_format import looks_like_rrd
+from octolgp.io.rrd_read import RrdScanReader, read_rrd
+from octolgp.io.rrd_write import log_scan
 from octolgp.io.threedtk import ThreeDTKReader, looks_like_3dtk, read_3dtk
 from octolgp.scan import Scan
 
@@ -180,7 +182,7 @@ def load_scans(
     skip_bad : bool
         Skip malformed lines, messages or files and count them (the returned reader's
         ``skipped``) instead of raising; every format but npz, which is validated whole.
-        Rerun: skip invalid scans (:class:`~octolgp.io.rrd.RrdScanReader` has ``skipped`` and
+        Rerun: skip invalid scans (:class:`~octolgp.io.rrd_read.RrdScanReader` has ``skipped`` and
         ``notes``); a cut-off tail is always skipped and reported there.
 
     Returns

@@ -5,7 +5,7 @@ carry stamps):
 
 ``world/sensor``, ``world/sensor/points``, ``octolgp/scan``
     The scan: pose, sensor-frame points and an exact copy
-    (:func:`octolgp.io.rrd.log_scan`), so a recording replays into the same map.
+    (:func:`octolgp.io.rrd_write.log_scan`), so a recording replays into the same map.
 ``world/sensor/rays``
     Optional, decimated beams as line strips (sensor frame).
 ``world/map/leaves/<packed leaf key>``
@@ -20,7 +20,7 @@ carry stamps):
 ``metrics/*``
     ``Scalars`` per scan: insert seconds, touched and refit leaves, leaves, memory MB.
 
-rerun-sdk is imported here and in :mod:`octolgp.io.rrd` only.
+rerun-sdk is imported here and in the ``octolgp.io.rrd*`` modules only.
 """
 
 from __future__ import annotations
@@ -97,7 +97,7 @@ class RerunSink:
 
     def on_scan(self, scan: Scan, index: int) -> None:
         """Log an accepted scan (pose, points, exact copy, optional rays)."""
-        from octolgp.io.rrd import log_scan
+        from octolgp.io.rrd_write import log_scan
 
         if self._blueprint:
             self.rec.send_blueprint(default_blueprint(scan.dim))
