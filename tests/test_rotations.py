@@ -10,6 +10,7 @@ from hypothesis.extra.numpy import arrays
 from scipy.spatial.transform import Rotation
 
 from octolgp.geometry.rotations import (
+    QuaternionOrder,
     axis_angle_to_matrix,
     euler_xyz_to_matrix,
     matrix_to_quaternion,
@@ -48,15 +49,15 @@ def test_quaternion_wxyz_is_scalar_first(q: np.ndarray) -> None:
 
 
 @given(QUATERNION, st.sampled_from(["xyzw", "wxyz"]))
-def test_matrix_to_quaternion_round_trip(q: np.ndarray, order: str) -> None:
-    R = quaternion_to_matrix(q, order=order)  # type: ignore[arg-type]
-    back = matrix_to_quaternion(R, order=order)  # type: ignore[arg-type]
+def test_matrix_to_quaternion_round_trip(q: np.ndarray, order: QuaternionOrder) -> None:
+    R = quaternion_to_matrix(q, order=order)
+    back = matrix_to_quaternion(R, order=order)
     np.testing.assert_allclose(np.linalg.norm(back), 1.0, atol=TOL)
     w = back[0] if order == "wxyz" else back[3]
     assert w >= 0
     unit = q / np.linalg.norm(q)
     assert np.allclose(back, unit, atol=1e-9) or np.allclose(back, -unit, atol=1e-9)
-    np.testing.assert_allclose(quaternion_to_matrix(back, order=order), R, atol=TOL)  # type: ignore[arg-type]
+    np.testing.assert_allclose(quaternion_to_matrix(back, order=order), R, atol=TOL)
 
 
 @pytest.mark.parametrize(
@@ -129,7 +130,7 @@ def test_invalid_quaternions_give_nan_and_bad_shapes_raise() -> None:
     assert np.isnan(quaternion_to_matrix(np.zeros(4))).all()
     assert np.isnan(quaternion_to_matrix([np.nan, 0.0, 0.0, 1.0])).all()
     with pytest.raises(ValueError, match="order"):
-        quaternion_to_matrix([0.0, 0.0, 0.0, 1.0], order="zyxw")  # type: ignore[arg-type]
+        quaternion_to_matrix([0.0, 0.0, 0.0, 1.0], order="zyxw")
     with pytest.raises(ValueError, match=r"\(\.\.\., 4\)"):
         quaternion_to_matrix(np.zeros(3))
     with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):

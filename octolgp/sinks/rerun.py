@@ -25,6 +25,7 @@ rerun-sdk is imported here and in the ``octolgp.io.rrd*`` modules only.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -32,6 +33,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 import rerun.components as rrc
 
+from octolgp.errors import OctolgpError
 from octolgp.scan import FloatArray, Scan
 from octolgp.sinks.base import LeafView, MapChange
 
@@ -51,6 +53,61 @@ def _heat(value: np.ndarray) -> np.ndarray:
     return np.stack([255 * v, 64 + 96 * (1 - np.abs(2 * v - 1)), 255 * (1 - v)], axis=1).astype(
         np.uint8
     )
+
+
+def open_recording(
+    app_id: str = "octolgp",
+    *,
+    save: str | Path | None = None,
+    connect: str | None = None,
+    serve: bool = False,
+) -> tuple[rr.RecordingStream, str | None]:
+    """A new recording stream sent to one place: a file, a viewer, or a gRPC server.
+
+    Parameters
+    ----------
+    app_id : str
+        The recording's application id (what the viewer groups recordings by).
+    save : str or Path, optional
+        Write the recording to this ``.rrd`` file.
+    connect : str, optional
+        Stream to the viewer at this URL (``rerun+http://host:port/proxy``).
+    serve : bool
+        Serve the recording over gRPC from this process, for viewers to connect to.
+
+    Returns
+    -------
+    recording : rerun.RecordingStream
+        The stream, ready for a :class:`RerunSink`; ``flush()`` and ``disconnect()`` it when
+        done.
+    url : str or None
+        The address viewers connect to when serving (``rerun --connect URL``), else None.
+
+    Raises
+    ------
+    ValueError
+        Unless exactly one of ``save``, ``connect`` and ``serve`` is given.
+    OctolgpError
+        If rerun refuses the path or URL (names which, with rerun's reason).
+    """
+    targets = (save is not None) + (connect is not None) + bool(serve)
+    if targets != 1:
+        raise ValueError("open_recording: give exactly one of save=, connect= and serve=True")
+    rec = rr.RecordingStream(app_id)
+    url = None
+    try:
+        if save is not None:
+            what = f"cannot save a Rerun recording to {str(save)!r}"
+            rec.save(save)
+        elif connect is not None:
+            what = f"cannot connect to a Rerun viewer at {connect!r}"
+            rec.connect_grpc(connect)
+        else:
+            what = "cannot serve a Rerun recording over gRPC"
+            url = rec.serve_grpc()
+    except (RuntimeError, ValueError, TypeError) as exc:  # how rerun reports a bad path or URL
+        raise OctolgpError(f"{what}: {exc}") from None
+    return rec, url
 
 
 def default_blueprint(dim: int) -> Any:

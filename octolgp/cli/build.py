@@ -1,0 +1,171 @@
+"""The batch commands: ``simulate``, ``build``, ``eval`` and ``bench``.
+
+Each command takes the parsed arguments and returns the exit status; heavy modules are
+imported inside the commands so that ``octolgp --help`` stays instant.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from octolgp.cli.scans import first_and_rest
+from octolgp.errors import OctolgpError
+
+__all__ = ["cmd_bench", "cmd_build", "cmd_eval", "cmd_simulate"]
+
+
+def cmd_simulate(args: argparse.Namespace) -> int:
+    """``octolgp simulate paper2d``: the paper's 2D simulation, with ground truth, as an npz."""
+    from octolgp.io import save_scan_log
+    from octolgp.sim.scenes import simulate_paper2d
+
+    data = simulate_paper2d(seed=args.seed)
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        raise OctolgpError(f"--out must end in .npz, got {str(out)!r}")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    save_scan_log(out, data.scans, data.truth_points, data.truth_labels)
+    n = sum(len(s) for s in data.scans)
+    print(
+        f"wrote {out}: {len(data.scans)} scans, {n} beams, {data.truth_points.shape[0]} test points"
+    )
+    return 0
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    """``octolgp bench paper2d``: reproduce the paper's Table II and Fig. 2-4 in ``--out``."""
+    from octolgp.bench.paper2d import format_table, run_paper2d
+
+    out = Path(args.out)
+    result = run_paper2d(out, seed=args.seed, repeats=args.repeats, n_seeds=args.seeds)
+    table = format_table(result)
+    print(table)
+    (out / "table2.txt").write_text(table + "\n")
+    print(f"\nwrote {out}/table2.txt, fig3_maps.png, fig4_roc.png, fig2_1d.png")
+    return 0
+
+
+def cmd_build(args: argparse.Namespace) -> int:
+    """``octolgp build``: batch-build a map file from a whole log, each leaf fitted once."""
+    import itertools
+    import os
+
+    from octolgp.batch.build import SCHEDULED
+    from octolgp.batch.leafmap import build_tiled
+    from octolgp.batch.voxelized import build_voxelized
+    from octolgp.config import MapConfig, OnlineConfig
+
+    out = Path(args.out)
+    if args.method not in SCHEDULED and args.scheduler is not None:
+        raise OctolgpError(
+            f"--scheduler runs --method {' or '.join(SCHEDULED)} only, got --method {args.method}"
+        )
+    if out.exists() and not args.overwrite:
+        raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
+    first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
+    scan_list = list(itertools.islice(scans, args.limit))
+    if args.downsample is not None:
+        scan_list = [s.downsample(args.downsample) for s in scan_list]
+    config = MapConfig(
+        dim=first.dim,
+        resolution=args.resolution,
+        online=OnlineConfig(learn_scans=args.learn_scans),
+        memory_budget_mb=args.memory_budget,
+    )
+    scheduler = args.scheduler
+    if not args.quiet:
+        where = "this process" if scheduler is None else f"Dask ({scheduler})"
+        print(f"building {len(scan_list)} scans in {where} ...", file=sys.stderr, flush=True)
+    # build beside the target and rename at the end: a killed build leaves no half map
+    partial = out.with_name(out.name + ".partial")
+    partial.unlink(missing_ok=True)
+    from tqdm import tqdm
+
+    bar = tqdm(total=0, unit="leaf", disable=args.quiet or None, dynamic_ncols=True)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        if args.method == "leaf":
+            m = build_tiled(
+                scan_list,
+                config,
+                path=partial,
+                scheduler=scheduler,
+                workers=args.workers,
+                n_jobs=args.jobs,
+                progress=progress,
+            )
+        else:
+            m = build_voxelized(
+                scan_list,
+                config,
+                args.method,
+                path=partial,
+                progress=progress,
+                scheduler=scheduler,
+                n_jobs=args.jobs,
+            )
+    finally:
+        bar.close()
+    stats = m.build_stats
+    m.close()
+    os.replace(partial, out)
+    print(
+        f"wrote {out}: {len(scan_list)} scans, {int(stats['items'])} training items, "
+        f"{int(stats['leaves'])} leaves, {int(stats['voxels'])} voxels in "
+        f"{stats['training'] + stats['assign'] + stats['fit'] + stats['store']:.1f} s "
+        f"(fit {stats['fit']:.1f} s)"
+    )
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    """``octolgp eval``: held-out-scan ROC AUC of every method; roc.png, results.json, table.md."""
+    import itertools
+    import json
+
+    from octolgp.bench.evaluation import evaluate_log, plot_roc
+    from octolgp.config import MapConfig
+
+    if not (0.0 < args.fraction < 1.0):
+        raise OctolgpError(f"--fraction must be in (0, 1), got {args.fraction}")
+    if not (args.short >= 0.0 and args.short < float("inf")):
+        raise OctolgpError(f"--short must be a finite number >= 0, got {args.short}")
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
+    scan_list = list(itertools.islice(scans, args.limit))
+    config = MapConfig(dim=first.dim, resolution=args.resolution)
+
+    def progress(message: str) -> None:
+        if not args.quiet:
+            print(message, file=sys.stderr, flush=True)
+
+    report = evaluate_log(
+        scan_list,
+        config,
+        seeds=args.seeds,
+        fraction=args.fraction,
+        run=args.run,
+        short=args.short,
+        leave_one_out=args.leave_one_out,
+        methods=methods,
+        n_jobs=args.jobs,
+        downsample=args.downsample,
+        progress=progress,
+        fast_online=args.fast_online,
+    )
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = Path(args.scans).name
+    plot_roc(report, out / "roc.png", title=f"{name}: held-out scans")
+    (out / "results.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
+    table = f"{name}, {len(scan_list)} scans, resolution {args.resolution} m: " + report.table()
+    (out / "table.md").write_text(table + "\n")
+    print(table)
+    print(f"\nwrote {out}/roc.png, {out}/results.json, {out}/table.md")
+    return 0

@@ -1,0 +1,140 @@
+"""The online commands: ``run`` (a scan log) and ``replay`` (a Rerun recording).
+
+Both insert scans one at a time into a new (or resumed) map file, optionally streaming the
+mapping to Rerun (``--rerun-save/--rerun-connect/--rerun-serve``, opened by
+:func:`octolgp.sinks.rerun.open_recording`). Heavy modules are imported inside the commands.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from octolgp.cli.scans import first_and_rest
+from octolgp.errors import OctolgpError
+
+__all__ = ["cmd_replay", "cmd_run"]
+
+
+def _recording(args: argparse.Namespace) -> Any:
+    """The Rerun recording the options ask for, or ``None`` (rerun is imported only then)."""
+    if not (args.rerun_save or args.rerun_connect or args.rerun_serve):
+        return None
+    from octolgp.sinks.rerun import open_recording
+
+    try:
+        if args.rerun_save:
+            where = "--rerun-save"
+            rec, url = open_recording("octolgp", save=args.rerun_save)
+        elif args.rerun_connect:
+            where = "--rerun-connect"
+            rec, url = open_recording("octolgp", connect=args.rerun_connect)
+        else:
+            where = "--rerun-serve"
+            rec, url = open_recording("octolgp", serve=True)
+    except OctolgpError as exc:
+        raise OctolgpError(f"{where}: {exc}") from None
+    if url is not None:
+        print(f"serving the recording at {url} (open it with: rerun --connect {url})")
+    return rec
+
+
+def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> int:
+    """Insert scans one by one into a new map file (progress bar in scans/s)."""
+    import itertools
+
+    from tqdm import tqdm
+
+    from octolgp.config import MapConfig, OnlineConfig
+    from octolgp.mapping.online import OnlineMap
+
+    out = Path(args.out)
+    resume = getattr(args, "resume", False) and out.exists()
+    if out.exists() and not (args.overwrite or resume):
+        raise OctolgpError(
+            f"--out {str(out)!r} already exists (pass --resume to continue it, "
+            "--overwrite to replace it)"
+        )
+    if args.limit is not None:
+        scans = itertools.islice(scans, args.limit)
+    config = MapConfig(
+        dim=first.dim,
+        resolution=args.resolution,
+        online=OnlineConfig(n_jobs=args.jobs, learn_scans=args.learn_scans),
+        memory_budget_mb=args.memory_budget,
+    )
+    rec = _recording(args)
+    sink = None
+    if rec is not None:
+        from octolgp.sinks.rerun import RerunSink
+
+        sink = RerunSink(rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty)
+    if resume:
+        m = OnlineMap.open(out)
+        if m.config.dim != config.dim or m.config.resolution != config.resolution:
+            m.close()
+            raise OctolgpError(
+                f"--resume: {str(out)!r} is a {m.config.dim}D map at {m.config.resolution:g} m, "
+                f"the scans are {config.dim}D and --resolution is {config.resolution:g} m"
+            )
+        m.sink = m.sink if sink is None else sink
+        done = m.n_scans
+        scans = itertools.islice(scans, done, None)  # skip what the map already holds
+        print(f"resuming {out} after {done} scans")
+    else:
+        for suffix in ("", "-wal", "-shm"):
+            Path(str(out) + suffix).unlink(missing_ok=True)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        m = OnlineMap(config, path=out, sink=sink)
+    try:
+        with m:
+            bar = tqdm(scans, unit="scan", disable=args.quiet or None, dynamic_ncols=True)
+            repaired = 0
+            for scan in bar:  # one iteration per scan
+                update = m.insert_scan(scan)
+                repaired += update.repaired
+                bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
+            last = m.flush()
+            repaired += 0 if last is None else last.repaired
+            n_leaves, n_scans = len(m.store), m.n_scans
+    finally:
+        if rec is not None:
+            rec.flush()
+            rec.disconnect()
+    print(f"wrote {out}: {n_scans} scans, {n_leaves} leaves, hyperparameters {m.hyperparameters}")
+    if repaired:
+        print(
+            f"note: {repaired} leaf kernel matrices were not positive definite; repaired by jitter"
+        )
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """``octolgp run``: map a scan log online, scan by scan."""
+    first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
+    return _map_scans(scans, first, args)
+
+
+def cmd_replay(args: argparse.Namespace) -> int:
+    """``octolgp replay``: rebuild a map from the scans of a Rerun recording; prints its notes."""
+    import itertools
+
+    from octolgp.io.rrd_read import read_rrd
+
+    reader = read_rrd(
+        args.recording,
+        points=args.points,
+        pose=args.pose,
+        timeline=args.timeline,
+        max_range=args.max_range,
+    )
+    it = iter(reader)
+    first = next(it, None)
+    if first is None:
+        raise OctolgpError(f"recording {args.recording!r} holds no scans")
+    status = _map_scans(itertools.chain([first], it), first, args)
+    for note in getattr(reader, "notes", []):
+        print(f"note: {note}")
+    return status

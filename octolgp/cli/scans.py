@@ -1,0 +1,37 @@
+"""Reading the SCANS argument of ``run``, ``build`` and ``eval``."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from typing import Any
+
+from octolgp.errors import OctolgpError
+
+__all__ = ["first_and_rest"]
+
+
+def first_and_rest(path: str, fmt: str | None, skip_bad: bool = False) -> tuple[Any, Iterator[Any]]:
+    """The first scan of a log (to learn its dimension) and an iterator over all of them.
+
+    With ``skip_bad`` the reader skips malformed parts; once the iterator is exhausted a
+    line on stderr says how many it skipped.
+    """
+    import itertools
+
+    from octolgp.io import load_scans
+
+    reader = load_scans(path, format=fmt, skip_bad=skip_bad)
+    it = iter(reader)
+
+    def report() -> Iterator[Any]:
+        # a generator: runs only once the reader is exhausted
+        skipped = getattr(reader, "skipped", 0)
+        if skip_bad and skipped:
+            print(f"octolgp: skipped {skipped} malformed part(s) of {path}", file=sys.stderr)
+        yield from ()
+
+    first = next(it, None)
+    if first is None:
+        raise OctolgpError(f"SCANS {path!r} holds no scans")
+    return first, itertools.chain([first], it, report())
