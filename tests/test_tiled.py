@@ -109,10 +109,12 @@ def test_bad_build_arguments_are_refused(
 
 
 @pytest.mark.parametrize("method", ["lgp", "leaf"])
-def test_a_scheduler_never_changes_what_is_computed(scans: list, method: str) -> None:
-    """The same build_map call, in-process and on a 2-worker LocalCluster, learning included."""
+def test_a_scheduler_never_changes_what_is_computed(
+    scans: list, config: MapConfig, method: str
+) -> None:
+    """The same build_map call, in-process and on a 2-worker LocalCluster."""
     distributed = pytest.importorskip("distributed")
-    config = MapConfig(dim=2, resolution=0.2)  # hyperparameters learnt by each build
+    scans = scans[:10]
     here = build_map(scans, config, method=method)
     with (
         distributed.LocalCluster(
