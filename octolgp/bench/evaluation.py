@@ -32,6 +32,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -48,12 +49,15 @@ FloatArray = NDArray[np.float64]
 METHODS = ("online", "batch", "grid", "octomap")
 """Method names of :func:`evaluate_log`, in report order."""
 
-LABELS = {
-    "online": "octolgp online",
-    "batch": "octolgp batch (lgp)",
-    "grid": "grid (ogm)",
-    "octomap": "OctoMap",
-}
+LABELS = MappingProxyType(
+    {
+        "online": "octolgp online",
+        "batch": "octolgp batch (lgp)",
+        "grid": "grid (ogm)",
+        "octomap": "OctoMap",
+    }
+)
+"""Display name of each method."""
 
 ROC_POINTS = 200
 """ROC curves are resampled to this many false-positive rates (keeps reports small)."""

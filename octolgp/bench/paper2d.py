@@ -12,6 +12,7 @@ import statistics
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -23,8 +24,12 @@ from octolgp.config import Hyperparameters, MapConfig, PartitionConfig
 from octolgp.gp.learning import learn_hyperparameters
 from octolgp.sim.scenes import simulate_paper2d
 
-METHOD_NAMES = {"lgp": "OM_LGP", "gp": "OM_GP", "mgp": "OM_MGP", "ogm": "OGM"}
-PAPER_HP = {"l": 2.66, "sigma_f": 2.81, "sigma_n": 0.99, "alpha": 7.94, "beta": -1.42}
+METHOD_NAMES = MappingProxyType({"lgp": "OM_LGP", "gp": "OM_GP", "mgp": "OM_MGP", "ogm": "OGM"})
+"""The paper's name of each method, in Table II order."""
+PAPER_HP = MappingProxyType(
+    {"l": 2.66, "sigma_f": 2.81, "sigma_n": 0.99, "alpha": 7.94, "beta": -1.42}
+)
+"""The hyperparameters the paper reports for its 2D simulation."""
 
 
 def paper2d_config() -> MapConfig:

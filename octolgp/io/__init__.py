@@ -33,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Iterator
 from pathlib import Path
+from types import MappingProxyType
 
 from numpy.typing import ArrayLike
 
@@ -89,7 +90,9 @@ SCAN_FORMATS = ("npz", "carmen", "3dtk", "rrd", "rosbag", "pcd", "ply", "scandat
 """Names accepted by ``load_scans(..., format=...)``."""
 
 _CARMEN_SUFFIXES = (".log", ".clf")
-_OTHER_SUFFIXES = {".pcd": "pcd", ".ply": "ply", ".bag": "rosbag", ".graph": "graph"}
+_OTHER_SUFFIXES = MappingProxyType(
+    {".pcd": "pcd", ".ply": "ply", ".bag": "rosbag", ".graph": "graph"}
+)
 _ZIP_MAGIC = b"PK\x03\x04"
 _GZIP_MAGIC = b"\x1f\x8b"
 

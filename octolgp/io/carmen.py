@@ -34,6 +34,7 @@ import zlib
 from collections.abc import Generator
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import IO
 
 import numpy as np
@@ -141,7 +142,7 @@ def _parse_robotlaser(tokens: list[str]) -> _Record:
     return _Record(tail[0:3], ranges, angles, float(tail[11]), inline_max)
 
 
-_PARSERS = {"FLASER": _parse_flaser, "ROBOTLASER1": _parse_robotlaser}
+_PARSERS = MappingProxyType({"FLASER": _parse_flaser, "ROBOTLASER1": _parse_robotlaser})
 
 
 def _open_text(path: Path) -> IO[str]:

@@ -30,6 +30,7 @@ import math
 from collections.abc import Generator
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import IO
 
 import numpy as np
@@ -59,9 +60,10 @@ __all__ = [
 
 _KEYWORDS = ("VERSION", "FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "VIEWPOINT", "POINTS")
 _DATA_KINDS = ("ascii", "binary", "binary_compressed")
-_TYPES = {("F", 4): "f4", ("F", 8): "f8"} | {
-    (t, s): f"{t.lower()}{s}" for t in "IU" for s in (1, 2, 4, 8)
-}
+_TYPES = MappingProxyType(
+    {("F", 4): "f4", ("F", 8): "f8"}
+    | {(t, s): f"{t.lower()}{s}" for t in "IU" for s in (1, 2, 4, 8)}
+)
 _MAX_HEADER_LINES = 256
 _MAX_LINE = 1 << 16
 

@@ -23,6 +23,7 @@ import math
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import MappingProxyType
 from typing import IO
 
 import numpy as np
@@ -42,13 +43,13 @@ from octolgp.scan import FloatArray, Scan
 
 __all__ = ["PlyElement", "PlyHeader", "PlyReader", "looks_like_ply", "read_ply", "read_ply_header"]
 
-_TYPES = {
+_TYPES = MappingProxyType({
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
     "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
     "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
-_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
+})  # fmt: skip
+_FORMATS = MappingProxyType({"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"})
 _MAX_HEADER_LINES = 4096
 _MAX_LINE = 1 << 16
 

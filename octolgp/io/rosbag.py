@@ -49,6 +49,7 @@ import math
 from collections.abc import Generator, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -88,7 +89,7 @@ _FRAME_SNIFF = 1000  # tf messages read at construction to choose the default fr
 _MAX_DEPTH = 64  # tf tree depth limit (guards against cycles)
 _ANGLE_RTOL = 1e-6
 _NS = 1_000_000_000
-_FLOAT_FIELDS = {7: "f4", 8: "f8"}  # PointField.FLOAT32, FLOAT64
+_FLOAT_FIELDS = MappingProxyType({7: "f4", 8: "f8"})  # PointField.FLOAT32, FLOAT64
 
 
 class _BadMessageError(Exception):
