@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import gzip
+import logging
 import shutil
 from collections.abc import Iterable
 from pathlib import Path
@@ -331,16 +332,20 @@ def _malformed(tmp_path: Path, kind: str) -> tuple[Path, int]:
 
 
 @pytest.mark.parametrize("kind", ["truncated", "non_numeric", "wrong_count", "bad_count", "nan"])
-def test_carmen_malformed_line(tmp_path: Path, kind: str) -> None:
+def test_carmen_malformed_line(tmp_path: Path, kind: str, caplog: pytest.LogCaptureFixture) -> None:
     path, line_no = _malformed(tmp_path, kind)
     scans = load_scans(path)  # the header is fine: no error at the call
     with pytest.raises(OctolgpError, match=rf"{kind}\.log:{line_no}:"):
         list(scans)
     reader = load_scans(path, skip_bad=True)
     assert isinstance(reader, CarmenReader)
-    assert len(list(reader)) == 19
+    with caplog.at_level(logging.INFO, logger="octolgp"):
+        assert len(list(reader)) == 19
     assert reader.skipped == 1
     assert reader.bad_lines == [line_no]
+    (record,) = [r for r in caplog.records if r.name == "octolgp.io.carmen"]
+    assert record.levelno == logging.INFO
+    assert f"{path}:{line_no}: skipped" in record.getMessage()
 
 
 def test_carmen_corrupt_gzip_tail_raises_while_iterating(tmp_path: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import math
 import os
 import re
@@ -373,6 +374,22 @@ def test_truncated_recording_replays_the_complete_prefix(tmp_path: Path) -> None
         cut.write_bytes(data[:n])
         with pytest.raises(OctolgpError, match=re.escape(str(cut))):
             read_rrd(cut)
+
+
+def test_cut_recording_logs_a_warning(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    path = tmp_path / "full.rrd"
+    _write(path, [make_scan(i) for i in range(4)])
+    cut = tmp_path / "cut.rrd"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2 + 3])
+    with caplog.at_level(logging.WARNING, logger="octolgp"):
+        list(read_rrd(cut))
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(str(cut) in m and "not closed" in m for m in warned), warned
+    assert any(str(cut) in m and "incomplete" in m for m in warned), warned
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="octolgp"):
+        list(read_rrd(path))
+    assert not caplog.records  # a closed, complete recording: nothing to warn about
 
 
 def test_recording_of_a_killed_writer(tmp_path: Path) -> None:

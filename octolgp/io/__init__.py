@@ -26,7 +26,9 @@ Supported formats (``format=`` names):
 
 Every reader streams and takes ``skip_bad``: malformed lines, messages or files are then
 skipped and counted (the reader's ``skipped``) instead of raising an error that names the
-file and line.
+file and line. Each skip is also logged at INFO (file, line or message, reason) on the
+reader's ``octolgp.io.*`` logger; a Rerun recording that was not closed or is cut off is
+logged at WARNING.
 """
 
 from __future__ import annotations

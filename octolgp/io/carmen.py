@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import functools
 import gzip
+import logging
 import re
 import zlib
 from collections.abc import Generator
@@ -44,6 +45,8 @@ from octolgp.io.base import ScanStream
 from octolgp.scan import FloatArray, Scan
 
 __all__ = ["NO_RETURN_MARGIN", "CarmenReader", "beam_angles", "looks_like_carmen", "read_carmen"]
+
+logger = logging.getLogger(__name__)
 
 NO_RETURN_MARGIN = 1e-3
 """Metres that :attr:`Scan.max_range` is set below a log's no-return reading."""
@@ -283,6 +286,7 @@ class CarmenReader(ScanStream):
                     raise OctolgpError(f"CARMEN log {self.path}:{line_no}: {exc}") from None
                 self.skipped += 1
                 self.bad_lines.append(line_no)
+                logger.info("CARMEN log %s:%d: skipped: %s", self.path, line_no, exc)
                 continue
             if resolved:
                 yield self._to_scan(record)

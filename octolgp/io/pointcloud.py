@@ -21,6 +21,7 @@ from __future__ import annotations
 import bz2
 import gzip
 import itertools
+import logging
 import lzma
 import math
 import warnings
@@ -44,6 +45,8 @@ __all__ = [
     "read_exact_lines",
     "read_header",
 ]
+
+logger = logging.getLogger(__name__)
 
 H = TypeVar("H")
 
@@ -262,6 +265,7 @@ class CloudReader(ScanStream):
             raise OctolgpError(f"{self.kind} {path}:{unit}{where}: {why}")
         self.skipped += 1
         self.bad_lines.append((path, where))
+        logger.info("%s %s:%s%d: skipped: %s", self.kind, path, unit, where, why)
 
     def bad_scan(self, exc: OctolgpError) -> None:
         """Raise, or count and skip (``skip_bad``), a whole malformed scan."""
@@ -269,6 +273,7 @@ class CloudReader(ScanStream):
             raise exc
         self.skipped += 1
         self.bad_scans.append(str(exc))
+        logger.info("skipped a scan: %s", exc)
 
     def _read_files(self, files: Iterable[Path]) -> Generator[Scan, None, None]:
         """One scan per file (:meth:`_read_file`); a file that fails goes to :meth:`bad_scan`."""

@@ -45,6 +45,7 @@ trimmed to :data:`TF_HORIZON` seconds.
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 from collections.abc import Generator, Iterable
 from dataclasses import dataclass, field
@@ -68,6 +69,8 @@ __all__ = [
     "looks_like_rosbag",
     "read_rosbag",
 ]
+
+logger = logging.getLogger(__name__)
 
 TF_HORIZON = 10.0
 """Seconds of transform and pose history kept per tf link (the latest one is always kept)."""
@@ -521,6 +524,7 @@ class RosbagReader(ScanStream):
             raise OctolgpError(f"ROS bag {self.path}: topic {topic!r} message {index}: {why}")
         self.skipped += 1
         self.bad_messages.append((topic, index))
+        logger.info("ROS bag %s: topic %r message %d: skipped: %s", self.path, topic, index, why)
 
     def _read(
         self, reader: Any, connections: Iterable[Any]

@@ -20,6 +20,7 @@ bisected down to a few lines to name the malformed one, so only bad input is par
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 import warnings
@@ -35,6 +36,8 @@ from octolgp.io.threedtk_pose import CM, LH_TO_RH, read_frames, read_pose
 from octolgp.scan import FloatArray, Scan
 
 __all__ = ["MIN_RANGE", "NO_RETURN_RANGE", "ThreeDTKReader", "looks_like_3dtk", "read_3dtk"]
+
+logger = logging.getLogger(__name__)
 
 MIN_RANGE = 0.20
 """Metres; nearer points are near-field noise (data README)."""
@@ -218,6 +221,9 @@ class ThreeDTKReader(ScanStream):
                     else:
                         self.skipped += 1
                         self.bad_lines.append((path, start + i))
+                        logger.info(
+                            "3DTK scan %s:%d: skipped: %s", path, start + i, _line_error(lines[i])
+                        )
         return out
 
     def _read_points(self, path: Path) -> FloatArray:
