@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import collections
+import dataclasses
 import os
 import shutil
 import signal
@@ -21,6 +22,7 @@ from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan, load_scans
 from octolgp.cli import main
 from octolgp.io.rrd_read import read_rrd
 from octolgp.mapping.online import ScanUpdate
+from octolgp.sinks.base import MapChange
 from octolgp.sinks.rerun import RerunSink
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
@@ -47,9 +49,10 @@ class Recorder(RerunSink):
         self.refits: collections.Counter[int] = collections.Counter()
         self.updates = 0
 
-    def on_update(self, m: OnlineMap, update: ScanUpdate, keys: list[int]) -> None:
-        super().on_update(m, update, keys)
-        self.refits.update(keys)
+    def on_update(self, update: ScanUpdate, change: MapChange) -> None:
+        leaves = list(change.leaves)  # an iterator: read once, for both
+        super().on_update(update, dataclasses.replace(change, leaves=leaves))
+        self.refits.update(leaf.key for leaf in leaves)
         self.updates += 1
 
 
