@@ -20,14 +20,11 @@ from scipy.spatial.transform import Rotation
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern
 
 import octolgp.gp.kernels as kernels_module
-from octolgp.gp.kernels import (
+from octolgp.gp.kernels import covariance_with_grad, item_covariance, matern32, node_distances
+from octolgp.gp.quadrature import (
     QuadratureSet,
     clenshaw_curtis,
-    covariance_with_grad,
-    item_covariance,
-    matern32,
     node_counts,
-    node_distances,
     points_set,
     quadrature_set,
 )
