@@ -171,7 +171,7 @@ class LearningConfig:
         (signal variance ran to its bound), so it is opt-in.
     balance_classes : bool
         Fit PLSC's α, β with occupied and free items weighted equally
-        (:func:`octolgp.plsc.fit_plsc`).
+        (:func:`octolgp.gp.plsc.fit_plsc`).
     min_noise_variance : float
         Lower bound of the learnt noise variance ``σn²`` (targets are ±1). Default
         0.01: on real logs the likelihood otherwise drives ``σn²`` to ~1e-4 on some

@@ -12,5 +12,5 @@ class OctolgpError(ValueError):
     """
 
 
-class MapFileNotFound(OctolgpError, FileNotFoundError):  # noqa: N818 - name from API.md
+class MapFileNotFound(OctolgpError, FileNotFoundError):  # noqa: N818 - name from docs/api.md
     """A map, scan log or recording path that does not exist."""

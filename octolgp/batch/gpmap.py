@@ -6,7 +6,7 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
 from octolgp.config import Hyperparameters, MapConfig
-from octolgp.gp.plsc import occupancy_probability
+from octolgp.gp.plsc import latent_occupancy
 from octolgp.scan import FloatArray, as_points
 
 
@@ -71,4 +71,4 @@ class GPMap(ABC):
         """
         mean, var = self.latent(points)
         hp = self.hyperparameters
-        return occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+        return latent_occupancy(mean, var, hp)

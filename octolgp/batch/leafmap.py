@@ -1,12 +1,12 @@
 """Whole-log builds into the leaf store: every leaf fitted once, locally or on Dask.
 
-:func:`build_tiled` is the batch counterpart of :class:`~octolgp.online.OnlineMap`:
+:func:`build_tiled` is the batch counterpart of :class:`~octolgp.mapping.online.OnlineMap`:
 all scans become training data at once, the evidence is split into the octree leaves
 (coarse boxes with overlap halos, :mod:`octolgp.mapping.grid`) with the same first-per-voxel
 rule, and each leaf is fitted **once** — the paper's iterative k-means under the
 cluster cap inside leaves that hold more than ``OnlineConfig.max_leaf_items`` — and
 predicted at its voxel centres. Fitting a leaf is a pure function of its evidence
-(:func:`~octolgp.online.fit_leaf`), so the leaves can run
+(:func:`~octolgp.mapping.fit.fit_leaf`), so the leaves can run
 
 - in this process, on ``n_jobs`` threads (BLAS pinned to one thread each), or
 - as tasks on a ``dask.distributed`` cluster (``scheduler=``): an embedded

@@ -210,7 +210,7 @@ class OccupancyGridMap:
 
     Only observed voxels are stored; every other point is unknown: probability
     exactly 0.5, log-odds 0. The grid has no variance. Points outside the
-    addressable range (:func:`~octolgp.keys.addressable_range`) are unknown.
+    addressable range (:func:`~octolgp.geometry.keys.addressable_range`) are unknown.
 
     Every query takes ``points``, an array_like of shape ``(q, dim)`` in the world
     frame, metres, and raises :class:`~octolgp.errors.OctolgpError` naming

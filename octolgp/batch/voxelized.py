@@ -12,7 +12,7 @@ import numpy as np
 from octolgp.batch.build import build_map
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.gp.plsc import occupancy_probability
+from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.fit import LeafFit
 from octolgp.mapping.online import OnlineMap
 from octolgp.mapping.store import Leaf
@@ -65,7 +65,7 @@ def build_voxelized(
                     mean, var = np.zeros_like(prob), np.ones_like(prob)
                 else:
                     mean, var = gmap.latent(centres)
-                    prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+                    prob = latent_occupancy(mean, var, hp)
                 valued = dataclasses.replace(
                     leaf,
                     mean=mean.astype(np.float32),

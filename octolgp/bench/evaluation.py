@@ -11,7 +11,7 @@ For each seed (or, with ``leave_one_out``, for each scan):
    (learnt once per split on the first ``learn_scans`` training scans, as the online
    map does, unless the config gives them):
 
-   - ``online``: :class:`~octolgp.online.OnlineMap`, scans inserted one by one;
+   - ``online``: :class:`~octolgp.mapping.online.OnlineMap`, scans inserted one by one;
    - ``batch``: ``build_map(method="lgp")``, the paper's offline overlapping local GPs;
    - ``grid``: ``build_map(method="ogm")``, the log-odds occupancy grid baseline;
    - ``octomap``: the real OctoMap library (:mod:`~octolgp.bench.octomap_ref`), when
@@ -264,7 +264,7 @@ def evaluate_log(
     progress : callable, optional
         Called with a short message before each map build.
     fast_online : bool
-        Build the ``online`` map in one step (:func:`octolgp.tiled.build_tiled`): the
+        Build the ``online`` map in one step (:func:`octolgp.batch.leafmap.build_tiled`): the
         same map as inserting the training scans one by one, bit for bit (tested), in a
         fraction of the time; its ``seconds`` are then those of the one-step build.
 

@@ -4,7 +4,7 @@ OctoMap files
 -------------
 Both formats hold OctoMap's ``OcTree`` (``OcTreeBaseImpl`` and
 ``OccupancyOcTreeBase`` in ``OctoMap/octomap``, version 1.10): a 16-level tree whose
-children are ordered ``x + 2 y + 4 z`` (see :func:`octolgp.keys.child_index`). The
+children are ordered ``x + 2 y + 4 z`` (see :func:`octolgp.geometry.keys.child_index`). The
 text header is the one ``AbstractOccupancyOcTree::writeBinaryConst`` and
 ``AbstractOcTree::write`` print::
 

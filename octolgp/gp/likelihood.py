@@ -46,7 +46,7 @@ def log_marginal_likelihood(
     log_theta : ndarray of shape (3,)
         ``log`` of (length_scale, signal_variance, noise_variance).
     R : ndarray of shape (N, N), optional
-        Node distances (:func:`octolgp.kernels.node_distances`), to reuse.
+        Node distances (:func:`octolgp.gp.kernels.node_distances`), to reuse.
 
     Returns
     -------

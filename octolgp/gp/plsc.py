@@ -3,9 +3,10 @@ r"""Probabilistic least-squares classification (R&W §6.5; Kim & Kim eq. 9).
 .. math:: p(y \mid \mu, \sigma^2) = \Phi\!\left(\frac{y(\alpha\mu + \beta)}{\sqrt{1 + \alpha^2\sigma^2}}\right)
 
 ``α`` and ``β`` maximise the sum of leave-one-out log predictive probabilities, with
-the closed-form LOO means and variances of :func:`octolgp.local_gp.loo_predictions`
+the closed-form LOO means and variances of :func:`octolgp.gp.likelihood.loo_predictions`
 (R&W eq. 6.42). The variance ``σ²`` is that of a noisy observation both in fitting
-(LOO) and in prediction (latent variance plus ``σn²``), so the two agree.
+(LOO) and in prediction (latent variance plus ``σn²``), so the two agree:
+:func:`latent_occupancy` is the one place a map turns its latent posterior into P.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 from scipy.optimize import minimize
 from scipy.special import log_ndtr, ndtr
 
+from octolgp.config import Hyperparameters
 from octolgp.scan import FloatArray
 
 
@@ -31,6 +33,24 @@ def occupancy_probability(
     """
     z = (alpha * mean + beta) / np.sqrt(1.0 + alpha * alpha * var)
     return np.asarray(ndtr(z), dtype=np.float64)
+
+
+def latent_occupancy(mean: FloatArray, var: FloatArray, hp: Hyperparameters) -> FloatArray:
+    """P(occupied) from the latent posterior: add the noise variance, then PLSC.
+
+    Parameters
+    ----------
+    mean, var : ndarray of shape (m,)
+        Latent mean and variance (the variance without the noise).
+    hp : Hyperparameters
+        Uses ``noise_variance``, ``alpha`` and ``beta``.
+
+    Returns
+    -------
+    ndarray of shape (m,)
+        In [0, 1].
+    """
+    return occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
 
 
 def _neg_loo_log_prob(

@@ -2,7 +2,7 @@
 
 Supported formats (``format=`` names):
 
-- ``"npz"``: the npz scan log of ``API.md`` (:mod:`octolgp.io.npz`), read and
+- ``"npz"``: the npz scan log of ``docs/npz-format.md`` (:mod:`octolgp.io.npz`), read and
   validated at the call.
 - ``"carmen"``: CARMEN text logs ``.log``/``.clf``, optionally ``.gz``
   (:mod:`octolgp.io.carmen`), streamed line by line.

@@ -1,4 +1,4 @@
-"""The npz scan log: a whole scan sequence in one ``.npz`` file (see ``API.md``).
+"""The npz scan log: a whole scan sequence in one ``.npz`` file (see ``docs/npz-format.md``).
 
 =============== =========== ======= =============================================
 array           shape       dtype   meaning

@@ -4,7 +4,7 @@ A leaf with at most ``OnlineConfig.max_leaf_items`` items is one GP on all of th
 (Kim & Kim's local GP on the leaf's halo box); a larger one is split by the paper's
 iterative k-means under the cluster cap (:func:`octolgp.partition.partition`) and
 each voxel is predicted by its nearest cluster. PLSC then turns the latent mean and
-variance into P(occupied) (:func:`octolgp.gp.plsc.occupancy_probability`).
+variance into P(occupied) (:func:`octolgp.gp.plsc.latent_occupancy`).
 Nothing here touches a map: the same functions run on the map's threads and on Dask
 workers.
 """
@@ -20,7 +20,7 @@ import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gp.clusters import cluster_tree, fit_clusters, predict_nearest
-from octolgp.gp.plsc import occupancy_probability
+from octolgp.gp.plsc import latent_occupancy
 from octolgp.gp.quadrature import items_and_targets, quadrature_spacing
 from octolgp.gp.regression import fit_predict
 from octolgp.mapping.cache import KernelCache, leaf_blocks
@@ -140,7 +140,7 @@ def fit_leaf(
     oc = config.online
     centres = LeafGrid.from_config(config).voxel_centres(leaf.index)
     mean, var, repaired = predict_leaf(leaf, centres, config, hp, cache)
-    prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+    prob = latent_occupancy(mean, var, hp)
     pruned = False
     if oc.prune and (prob.max() < oc.prune_free or prob.min() > oc.prune_occupied):
         at = int(np.argmax(prob) if prob.max() < oc.prune_free else np.argmin(prob))

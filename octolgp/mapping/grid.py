@@ -4,7 +4,7 @@ The map is cut into *leaves*: the nodes of the OctoMap key tree at depth
 ``leaf_depth``. A leaf spans ``2**(tree_depth - leaf_depth)`` voxels per axis (16 × 16
 in 2D, 8 × 8 × 8 in 3D by default); its index per axis is the voxel key shifted
 right by ``tree_depth - leaf_depth`` bits, so leaf indices are OctoMap keys of a
-coarser tree and pack the same way (:func:`octolgp.keys.pack_keys`).
+coarser tree and pack the same way (:func:`octolgp.geometry.keys.pack_keys`).
 
 A leaf's *halo box* is its box grown by ``halo`` times its edge on every side. A leaf
 trains on every hit inside its halo box and on every free segment clipped to it, so

@@ -57,7 +57,7 @@ from threadpoolctl import ThreadpoolController
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.gp.learning import learn_hyperparameters
-from octolgp.gp.plsc import occupancy_probability
+from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.cache import KernelCache
 from octolgp.mapping.evidence import check_scan, gather_evidence
 from octolgp.mapping.fit import LeafFit, LeafFitter, fit_leaves
@@ -661,7 +661,7 @@ class OnlineMap:
             (prob,) = lookup(m.store, m.grid, X, ("prob",))
             return np.where(np.isnan(prob), 0.5, prob)
         mean, var, known = interpolate_latent(m, X)
-        prob = occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+        prob = latent_occupancy(mean, var, hp)
         return np.where(known, prob, 0.5)
 
     def latent(self, points: object, *, interpolate: bool = True) -> tuple[FloatArray, FloatArray]:

@@ -2,7 +2,7 @@
 
 Each scan is ray-cast analytically against the ground plane and, through a coarse
 2D grid of box footprints, only the boxes within ``max_range`` of the sensor
-(slab method, :func:`octolgp.simulate.ray_box_distance`), so the cost of a scan
+(slab method, :func:`octolgp.sim.scenes.ray_box_distance`), so the cost of a scan
 does not grow with the size of the world.
 """
 
