@@ -9,7 +9,8 @@ through a lookup function and never writes it: the map applies the result later.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -20,7 +21,7 @@ from octolgp.geometry.keys import addressable_range
 from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
 from octolgp.mapping.store import Leaf
 from octolgp.scan import Scan, check_scan_size
-from octolgp.training import IntArray, TrainingData
+from octolgp.training import IntArray, TrainingData, make_training_data
 
 
 def group_keys(packed: IntArray) -> tuple[IntArray, IntArray, IntArray]:
@@ -141,3 +142,73 @@ def gather_evidence(
             new_items += added
             changed.append((key, leaf))
     return Evidence(changed, touched.tolist(), new_items)
+
+
+def scan_chunks(scans: list[Scan], beams: int) -> Iterator[list[Scan]]:
+    """Consecutive runs of scans holding about ``beams`` beams each (at least one scan)."""
+    chunk: list[Scan] = []
+    total = 0
+    for s in scans:  # one iteration per scan
+        chunk.append(s)
+        total += len(s)
+        if total >= beams:
+            yield chunk
+            chunk, total = [], 0
+    if chunk:
+        yield chunk
+
+
+def gather_batch(
+    scans: list[Scan],
+    grid: LeafGrid,
+    config: MapConfig,
+    lookup: Callable[[int], Leaf | None],
+    chunk_beams: int,
+    stats: dict[str, float],
+) -> tuple[dict[int, Leaf], int]:
+    """Every scan's evidence, chunk by chunk in time order, as new leaves by key.
+
+    Chunks in time order give exactly the leaves of all scans at once (the first item
+    per voxel wins) while bounding the transient arrays of the assignment by the
+    chunk, not the log.
+
+    Parameters
+    ----------
+    scans : list of Scan
+        Checked scans, in time order.
+    grid : LeafGrid
+    config : MapConfig
+        The map's config (training data as the map makes it).
+    lookup : callable
+        The map's current leaf of a packed key, or ``None``; only read.
+    chunk_beams : int
+        Beams per chunk.
+    stats : dict of str to float
+        ``training`` and ``assign`` seconds are written here.
+
+    Returns
+    -------
+    leaves : dict of int to Leaf
+        The leaves that gained evidence, new objects, in first-touch order.
+    new_items : int
+    """
+    gathered: dict[int, Leaf] = {}
+    new_items = 0
+    stats["training"] = stats["assign"] = 0.0
+
+    def current(key: int) -> Leaf | None:
+        leaf = gathered.get(key)
+        return leaf if leaf is not None else lookup(key)
+
+    for chunk in scan_chunks(scans, chunk_beams):  # a few hundred thousand beams each
+        t = time.perf_counter()
+        data = make_training_data(chunk, config)
+        stats["training"] += time.perf_counter() - t
+        t = time.perf_counter()
+        evidence = gather_evidence(data, grid, config, current)
+        del data
+        new_items += evidence.new_items
+        for key, leaf in evidence.changed:  # one iteration per leaf that gained evidence
+            gathered[key] = leaf
+        stats["assign"] += time.perf_counter() - t
+    return gathered, new_items

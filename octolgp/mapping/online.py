@@ -51,21 +51,19 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-import numpy as np
 from threadpoolctl import ThreadpoolController
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.gp.learning import learn_hyperparameters
-from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.cache import KernelCache
-from octolgp.mapping.evidence import check_scan, gather_evidence
+from octolgp.mapping.evidence import check_scan, gather_batch, gather_evidence
 from octolgp.mapping.fit import LeafFit, LeafFitter, fit_leaves
 from octolgp.mapping.grid import LeafGrid
-from octolgp.mapping.query import interpolate, lookup, query_points
+from octolgp.mapping.query import MapReads
 from octolgp.mapping.store import Leaf, LeafStore, MapStorage
 from octolgp.mapping.update import ScanUpdate
-from octolgp.scan import FloatArray, Scan
+from octolgp.scan import Scan
 from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
 from octolgp.training import make_training_data
 
@@ -74,15 +72,15 @@ __all__ = ["OnlineMap", "ScanUpdate"]
 logger = logging.getLogger(__name__)
 
 CHUNK_BEAMS = 60_000
-"""Beams per chunk when :meth:`OnlineMap.insert_batch` gathers evidence: bounds the
-transient arrays of the segment-to-leaf assignment by the chunk, not the log."""
+"""Beams per chunk when :meth:`OnlineMap.insert_batch` gathers evidence
+(:func:`octolgp.mapping.evidence.gather_batch`)."""
 
 FIT_BATCH_ITEMS = 160_000
 """Training items (summed over leaves) fitted per batch by :meth:`OnlineMap.insert_batch`
 in this process; each batch is stored and committed before the next."""
 
 
-class OnlineMap:
+class OnlineMap(MapReads):
     """A continuous occupancy map built scan by scan.
 
     Parameters
@@ -437,7 +435,10 @@ class OnlineMap:
             stats["learning"] = time.perf_counter() - t
             logger.info("learnt hyperparameters on the first scans: %s", hp)
             self.hyperparameters, self._buffer, self._provisional = hp, [], None
-        gathered, new_items = self._gather_batch(scan_list, stats)
+        with self._blas_limit():
+            gathered, new_items = gather_batch(
+                scan_list, self.grid, self._raw_config, self.store.get, CHUNK_BEAMS, stats
+            )
         keys, leaves = list(gathered), list(gathered.values())
         del gathered
         t = time.perf_counter()
@@ -477,36 +478,6 @@ class OnlineMap:
         )
         self.sink.on_update(update, self._change((k, self.store.peek(k)) for k in keys))
         return update
-
-    def _gather_batch(
-        self, scans: list[Scan], stats: dict[str, float]
-    ) -> tuple[dict[int, Leaf], int]:
-        """Every scan's evidence, chunk by chunk in time order, as new leaves by key.
-
-        Chunks in time order give exactly the leaves of all scans at once (first item
-        per voxel wins) while bounding the assignment's transient arrays.
-        """
-        gathered: dict[int, Leaf] = {}  # first-touch order
-        new_items = 0
-        stats["training"] = stats["assign"] = 0.0
-
-        def current(key: int) -> Leaf | None:
-            leaf = gathered.get(key)
-            return leaf if leaf is not None else self.store.get(key)
-
-        for chunk in _chunks(scans, CHUNK_BEAMS):  # a few hundred thousand beams each
-            t = time.perf_counter()
-            with self._blas_limit():
-                data = make_training_data(chunk, self._raw_config)
-            stats["training"] += time.perf_counter() - t
-            t = time.perf_counter()
-            evidence = gather_evidence(data, self.grid, self.config, current)
-            del data
-            new_items += evidence.new_items
-            for key, leaf in evidence.changed:  # one iteration per leaf that gained evidence
-                gathered[key] = leaf
-            stats["assign"] += time.perf_counter() - t
-        return gathered, new_items
 
     def _local_fitter(
         self, keys: list[int], leaves: list[Leaf]
@@ -610,7 +581,10 @@ class OnlineMap:
 
     # ------------------------------------------------------------------ reads
     def _readable(self) -> OnlineMap:
-        """The map reads come from: this one, or a provisional fit while buffering."""
+        """The map reads come from: this one, or a provisional fit while buffering.
+
+        Every read of :class:`~octolgp.mapping.query.MapReads` goes through it.
+        """
         if not self.provisional:
             return self
         if self._provisional is None or self._provisional[0] != len(self._buffer):
@@ -627,124 +601,6 @@ class OnlineMap:
         provisional.insert_batch(self._buffer)
         return provisional
 
-    def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
-        """P(occupied) at query points.
-
-        Parameters
-        ----------
-        points : array_like of shape (q, d)
-            World frame, metres.
-        interpolate : bool, optional
-            ``True`` (default): a continuous map. The latent mean and variance stored
-            at the ``2**d`` voxel centres around each point are interpolated
-            multilinearly (unknown corners count as the GP prior) and PLSC turns them
-            into a probability; at a voxel centre this is the voxel's own value.
-            ``False``: the stored value of the voxel holding the point (OctoMap's
-            semantics, piecewise constant).
-
-        Returns
-        -------
-        ndarray of shape (q,)
-            In [0, 1]; exactly 0.5 where the voxel holding the point has no value.
-            While :attr:`provisional`, from a fit of the buffered scans that is thrown
-            away (the map does not change).
-
-        Raises
-        ------
-        OctolgpError
-            On a bad shape, a non-finite value or a point outside the addressable range.
-        """
-        X = query_points(points, self.config)
-        m = self._readable()
-        hp = m.hyperparameters
-        if not interpolate or hp is None:
-            (prob,) = lookup(m.store, m.grid, X, ("prob",))
-            return np.where(np.isnan(prob), 0.5, prob)
-        mean, var, known = interpolate_latent(m, X)
-        prob = latent_occupancy(mean, var, hp)
-        return np.where(known, prob, 0.5)
-
-    def latent(self, points: object, *, interpolate: bool = True) -> tuple[FloatArray, FloatArray]:
-        """GP latent mean and variance at query points.
-
-        ``interpolate`` as in :meth:`occupancy` (multilinear between voxel centres, or
-        the voxel holding each point); provisional while scans are buffered.
-
-        Returns
-        -------
-        mean, var : ndarray of shape (q,)
-            The prior ``(0, σf²)`` where the voxel holding the point has no value
-            (``σf² = 1`` before hyperparameters exist).
-        """
-        X = query_points(points, self.config)
-        m = self._readable()
-        prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
-        if not interpolate:
-            mean, var = lookup(m.store, m.grid, X, ("mean", "var"))
-            return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
-        mean, var, known = interpolate_latent(m, X)
-        return np.where(known, mean, 0.0), np.where(known, var, prior)
-
-    def voxel_centres(self, leaf: Leaf) -> FloatArray:
-        """Centres of a leaf's voxels, shape (V, d), in the order of its value arrays."""
-        return self.grid.voxel_centres(leaf.index)
-
-    def leaves(self) -> Iterator[tuple[int, Leaf]]:
-        """``(packed leaf key, leaf)`` for every leaf, in key order."""
-        return self.store.items()
-
-    def voxels(self) -> tuple[FloatArray, FloatArray]:
-        """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
-
-        Provisional while scans are buffered (see :attr:`provisional`).
-
-        Returns
-        -------
-        centres : ndarray of shape (k, d)
-        prob : ndarray of shape (k,)
-        """
-        m = self._readable()
-        cs, ps = [], []
-        for _, leaf in m.store.items():  # one iteration per leaf
-            if leaf.prob.size == 0:
-                continue
-            cs.append(m.grid.voxel_centres(leaf.index))
-            ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
-        if not cs:
-            return np.zeros((0, self.config.dim)), np.zeros(0)
-        return np.concatenate(cs), np.concatenate(ps)
-
-    def occupied_voxels(self, threshold: float = 0.5) -> tuple[FloatArray, FloatArray]:
-        """Centres and P(occupied) of the voxels above ``threshold``."""
-        centres, prob = self.voxels()
-        keep = prob > threshold
-        return centres[keep], prob[keep]
-
-    def export_octomap(self, path: str | Path, threshold: float = 0.5) -> int:
-        """Write the map as an OctoMap file that the OctoMap library reads.
-
-        ``.bt`` (default) is OctoMap's maximum-likelihood binary format: every
-        predicted voxel is occupied when P(occupied) > ``threshold``, else free;
-        voxels no leaf predicts stay unknown. ``.ot`` is the full format with each
-        voxel's log-odds ``log(P / (1 − P))``. A 2D map is one layer of voxels whose
-        z key is 32768 (z in ``[0, resolution)``). Identical sibling voxels are
-        pruned as OctoMap does. Provisional while scans are buffered.
-
-        Returns
-        -------
-        int
-            Nodes written (OctoMap's ``size()``).
-        """
-        from octolgp.export.octomap import write_map_voxels
-
-        ok = isinstance(threshold, int | float) and not isinstance(threshold, bool)
-        if not ok or not 0.0 < threshold < 1.0:
-            raise OctolgpError(f"threshold must be a number in (0, 1), got {threshold!r}")
-        centres, prob = self.voxels()
-        return write_map_voxels(
-            path, centres, prob, self.config.resolution, self.config.tree_depth, threshold
-        )
-
     def memory_bytes(self) -> int:
         """Bytes held by the leaves (evidence and voxel values)."""
         return self.store.nbytes
@@ -754,26 +610,6 @@ class OnlineMap:
             f"OnlineMap(dim={self.config.dim}, resolution={self.config.resolution:g}, "
             f"scans={self.n_scans}, leaves={len(self.store)})"
         )
-
-
-def interpolate_latent(m: OnlineMap, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """Multilinear latent mean and variance of map ``m`` at points (see :func:`interpolate`)."""
-    prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
-    return interpolate(m.store, m.grid, m.config, prior, X)
-
-
-def _chunks(scans: list[Scan], beams: int) -> Iterator[list[Scan]]:
-    """Consecutive runs of scans holding about ``beams`` beams each (at least one scan)."""
-    chunk: list[Scan] = []
-    total = 0
-    for s in scans:  # one iteration per scan
-        chunk.append(s)
-        total += len(s)
-        if total >= beams:
-            yield chunk
-            chunk, total = [], 0
-    if chunk:
-        yield chunk
 
 
 def _batches(sizes: list[int], items: int) -> Iterator[tuple[int, int]]:

@@ -1,5 +1,8 @@
 """Queries: read voxel values from the store, at voxels or interpolated between them.
 
+:class:`MapReads` is the read side of the online map (occupancy, latent, voxels,
+export); :class:`~octolgp.mapping.online.OnlineMap` adds the writes.
+
 Every function here only reads the store (a query never changes a map). A map
 with a memory budget loads evicted leaves for reading without making them
 resident, so a query does not change which leaves stay in RAM either.
@@ -7,14 +10,19 @@ resident, so a query does not change which leaves stay in RAM either.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Protocol
+
 import numpy as np
 
-from octolgp.config import MapConfig
+from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import addressable_mask, addressable_range
+from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.evidence import group_keys
 from octolgp.mapping.grid import LeafGrid
-from octolgp.mapping.store import LeafStore
+from octolgp.mapping.store import Leaf, LeafStore
 from octolgp.scan import FloatArray, as_points
 
 
@@ -106,3 +114,151 @@ def interpolate(
     mean = np.where(known, mean, 0.0).reshape(weights.shape)
     var = np.where(known, var, prior).reshape(weights.shape)
     return (weights * mean).sum(axis=0), (weights * var).sum(axis=0), ~np.isnan(own)
+
+
+class ReadableMap(Protocol):
+    """What a read needs of a map: its config, leaf grid, store and hyperparameters."""
+
+    config: MapConfig
+    grid: LeafGrid
+    store: LeafStore
+    hyperparameters: Hyperparameters | None
+
+
+def interpolate_latent(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
+    """Multilinear latent mean and variance of map ``m`` at points (see :func:`interpolate`)."""
+    prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
+    return interpolate(m.store, m.grid, m.config, prior, X)
+
+
+class MapReads:
+    """The reads of an online map; none of them changes the map.
+
+    A subclass provides ``config`` and :meth:`_readable`, the map the reads come from
+    (itself, or a provisional fit while it buffers scans to learn hyperparameters).
+    """
+
+    config: MapConfig
+    grid: LeafGrid
+    store: LeafStore
+
+    def _readable(self) -> ReadableMap:
+        raise NotImplementedError
+
+    def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
+        """P(occupied) at query points.
+
+        Parameters
+        ----------
+        points : array_like of shape (q, d)
+            World frame, metres.
+        interpolate : bool, optional
+            ``True`` (default): a continuous map. The latent mean and variance stored
+            at the ``2**d`` voxel centres around each point are interpolated
+            multilinearly (unknown corners count as the GP prior) and PLSC turns them
+            into a probability; at a voxel centre this is the voxel's own value.
+            ``False``: the stored value of the voxel holding the point (OctoMap's
+            semantics, piecewise constant).
+
+        Returns
+        -------
+        ndarray of shape (q,)
+            In [0, 1]; exactly 0.5 where the voxel holding the point has no value.
+            While :attr:`provisional`, from a fit of the buffered scans that is thrown
+            away (the map does not change).
+
+        Raises
+        ------
+        OctolgpError
+            On a bad shape, a non-finite value or a point outside the addressable range.
+        """
+        X = query_points(points, self.config)
+        m = self._readable()
+        hp = m.hyperparameters
+        if not interpolate or hp is None:
+            (prob,) = lookup(m.store, m.grid, X, ("prob",))
+            return np.where(np.isnan(prob), 0.5, prob)
+        mean, var, known = interpolate_latent(m, X)
+        prob = latent_occupancy(mean, var, hp)
+        return np.where(known, prob, 0.5)
+
+    def latent(self, points: object, *, interpolate: bool = True) -> tuple[FloatArray, FloatArray]:
+        """GP latent mean and variance at query points.
+
+        ``interpolate`` as in :meth:`occupancy` (multilinear between voxel centres, or
+        the voxel holding each point); provisional while scans are buffered.
+
+        Returns
+        -------
+        mean, var : ndarray of shape (q,)
+            The prior ``(0, σf²)`` where the voxel holding the point has no value
+            (``σf² = 1`` before hyperparameters exist).
+        """
+        X = query_points(points, self.config)
+        m = self._readable()
+        prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
+        if not interpolate:
+            mean, var = lookup(m.store, m.grid, X, ("mean", "var"))
+            return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
+        mean, var, known = interpolate_latent(m, X)
+        return np.where(known, mean, 0.0), np.where(known, var, prior)
+
+    def voxel_centres(self, leaf: Leaf) -> FloatArray:
+        """Centres of a leaf's voxels, shape (V, d), in the order of its value arrays."""
+        return self.grid.voxel_centres(leaf.index)
+
+    def leaves(self) -> Iterator[tuple[int, Leaf]]:
+        """``(packed leaf key, leaf)`` for every leaf, in key order."""
+        return self.store.items()
+
+    def voxels(self) -> tuple[FloatArray, FloatArray]:
+        """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
+
+        Provisional while scans are buffered (see :attr:`provisional`).
+
+        Returns
+        -------
+        centres : ndarray of shape (k, d)
+        prob : ndarray of shape (k,)
+        """
+        m = self._readable()
+        cs, ps = [], []
+        for _, leaf in m.store.items():  # one iteration per leaf
+            if leaf.prob.size == 0:
+                continue
+            cs.append(m.grid.voxel_centres(leaf.index))
+            ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
+        if not cs:
+            return np.zeros((0, self.config.dim)), np.zeros(0)
+        return np.concatenate(cs), np.concatenate(ps)
+
+    def occupied_voxels(self, threshold: float = 0.5) -> tuple[FloatArray, FloatArray]:
+        """Centres and P(occupied) of the voxels above ``threshold``."""
+        centres, prob = self.voxels()
+        keep = prob > threshold
+        return centres[keep], prob[keep]
+
+    def export_octomap(self, path: str | Path, threshold: float = 0.5) -> int:
+        """Write the map as an OctoMap file that the OctoMap library reads.
+
+        ``.bt`` (default) is OctoMap's maximum-likelihood binary format: every
+        predicted voxel is occupied when P(occupied) > ``threshold``, else free;
+        voxels no leaf predicts stay unknown. ``.ot`` is the full format with each
+        voxel's log-odds ``log(P / (1 − P))``. A 2D map is one layer of voxels whose
+        z key is 32768 (z in ``[0, resolution)``). Identical sibling voxels are
+        pruned as OctoMap does. Provisional while scans are buffered.
+
+        Returns
+        -------
+        int
+            Nodes written (OctoMap's ``size()``).
+        """
+        from octolgp.export.octomap import write_map_voxels
+
+        ok = isinstance(threshold, int | float) and not isinstance(threshold, bool)
+        if not ok or not 0.0 < threshold < 1.0:
+            raise OctolgpError(f"threshold must be a number in (0, 1), got {threshold!r}")
+        centres, prob = self.voxels()
+        return write_map_voxels(
+            path, centres, prob, self.config.resolution, self.config.tree_depth, threshold
+        )
