@@ -29,7 +29,7 @@ from tqdm import tqdm
 
 from octolgp import MapConfig, load_scans
 from octolgp.batch.leafmap import build_tiled
-from octolgp.export.octomap import write_png
+from octolgp.export.image import write_png
 
 ROOT = Path(__file__).resolve().parent.parent
 SHARED = ROOT.parent / "shared" / "data"

@@ -11,14 +11,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from octolgp.errors import OctolgpError
-from octolgp.export.octomap import (
-    decode_bt,
-    read_bt_header,
-    write_bt,
-    write_ot,
-    write_ply,
-    write_png,
-)
+from octolgp.export.image import write_png
+from octolgp.export.octomap import write_bt, write_ot
+from octolgp.export.octomap_read import decode_bt, read_bt_header
+from octolgp.export.ply import write_ply
 from octolgp.geometry.keys import key_to_coord
 
 RES = 0.1

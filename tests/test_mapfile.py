@@ -15,7 +15,7 @@ import pytest
 
 from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
 from octolgp.cli import main
-from octolgp.export.octomap import decode_bt, read_bt_header
+from octolgp.export.octomap_read import decode_bt, read_bt_header
 from octolgp.persist.mapfile import decode_leaf, encode_leaf
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"

@@ -34,7 +34,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     """``octolgp export``: a map file as OctoMap ``.bt``/``.ot``, PLY voxel centres or a PNG."""
     import numpy as np
 
-    from octolgp.export.octomap import write_ply, write_png
+    from octolgp.export.image import write_png
+    from octolgp.export.ply import write_ply
     from octolgp.mapping.online import OnlineMap
 
     out = Path(args.out)
