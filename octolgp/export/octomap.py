@@ -217,5 +217,5 @@ def write_map_voxels(
     p = Path(path)
     if p.suffix == ".ot":
         q = np.clip(prob, 1e-6, 1.0 - 1e-6)
-        return write_ot(p, keys, np.log(q / (1.0 - q)), resolution)
-    return write_bt(p, keys, prob > threshold, resolution)
+        return write_ot(p, keys, np.log(q / (1.0 - q)), resolution, tree_depth)
+    return write_bt(p, keys, prob > threshold, resolution, tree_depth)
