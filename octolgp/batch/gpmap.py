@@ -1,4 +1,4 @@
-"""What every GP map shares: cluster items, query validation, PLSC on the latent."""
+"""What every batch GP map shares: query validation and PLSC on the latent posterior."""
 
 from __future__ import annotations
 

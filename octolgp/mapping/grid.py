@@ -1,4 +1,4 @@
-"""Training data → leaves: the octree leaf grid, overlap halos, and what each leaf holds.
+"""The octree leaf grid: leaf boxes, overlap halos, and which leaves points and segments reach.
 
 The map is cut into *leaves*: the nodes of the OctoMap key tree at depth
 ``leaf_depth``. A leaf spans ``2**(tree_depth - leaf_depth)`` voxels per axis (16 × 16
