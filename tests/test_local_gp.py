@@ -289,3 +289,35 @@ def test_online_map_reports_repaired_leaves() -> None:
     assert other.insert_scan(Scan(np.zeros(2), pts)).repaired == 0
     assert other.repaired == 0
     assert m.repaired == update.repaired
+
+
+def test_concurrent_maps_count_only_their_own_repairs() -> None:
+    """Two maps fitting at the same time on two threads: each sees its own repairs only."""
+    import threading
+
+    from octolgp import MapConfig, OnlineMap, Scan
+
+    bad = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)  # no noise: near-coincident hits repair
+    pts = np.array([[1.0 - 1e-12, 0.05], [1.0 + 1e-12, 0.05], [1.0, 0.35]])
+    healthy = np.c_[np.full(20, 2.0), np.linspace(-1, 1, 20)]
+    a = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=bad))
+    b = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters()))
+    counts: dict[str, list[int]] = {"a": [], "b": []}
+
+    def feed(m: OnlineMap, name: str, points: np.ndarray) -> None:
+        for k in range(30):  # each scan from a new place: every insert refits
+            shift = np.array([0.0, 3.0 * k])
+            counts[name].append(m.insert_scan(Scan(shift, points + shift)).repaired)
+
+    threads = [
+        threading.Thread(target=feed, args=(a, "a", pts)),
+        threading.Thread(target=feed, args=(b, "b", healthy)),
+    ]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert all(c >= 1 for c in counts["a"])
+    assert counts["b"] == [0] * 30
+    assert a.repaired == sum(counts["a"])
+    assert b.repaired == 0
