@@ -271,6 +271,14 @@ class OnlineConfig:
         the kernel only for the new ones; the result is bit for bit that of a fresh
         fit. Least recently used leaves are dropped first; 0 disables the cache.
         Default 64.
+    inducing_per_axis : int
+        The leaf's GP. ``0`` (default): the exact local GP on all the leaf's items.
+        ``k >= 2``: a DTC sparse GP on ``k**dim`` inducing points spread evenly over
+        the leaf's halo box (:mod:`octolgp.gp.sparse`): the kernel is evaluated
+        between items and inducing points only, not between all node pairs, so a
+        refit costs far less and grows linearly with the leaf's evidence; an
+        approximation (``docs/design-realtime-3d.md`` has its measured error and
+        speed). Experimental: the groundwork of issue #14.
     """
 
     leaf_depth: int | None = None
@@ -284,6 +292,7 @@ class OnlineConfig:
     free_voxels: int = 1
     max_scan_points: int = 1_000_000
     kernel_cache_mb: float = 64.0
+    inducing_per_axis: int = 0
 
     def __post_init__(self) -> None:
         if self.leaf_depth is not None:
@@ -305,6 +314,9 @@ class OnlineConfig:
         _integer("OnlineConfig", "free_voxels", self.free_voxels, 1, 64)
         _integer("OnlineConfig", "max_scan_points", self.max_scan_points, 1)
         _positive("OnlineConfig", "kernel_cache_mb", self.kernel_cache_mb, allow_zero=True)
+        _integer("OnlineConfig", "inducing_per_axis", self.inducing_per_axis, 0, 32)
+        if self.inducing_per_axis == 1:
+            raise OctolgpError("OnlineConfig.inducing_per_axis must be 0 or >= 2, got 1")
 
 
 @dataclass(frozen=True, slots=True)

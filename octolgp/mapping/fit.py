@@ -20,9 +20,11 @@ import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gp.clusters import cluster_tree, fit_clusters, predict_nearest
+from octolgp.gp.kernels import item_covariance
 from octolgp.gp.plsc import latent_occupancy
-from octolgp.gp.quadrature import items_and_targets, quadrature_spacing
+from octolgp.gp.quadrature import items_and_targets, points_set, quadrature_spacing
 from octolgp.gp.regression import fit_predict
+from octolgp.gp.sparse import InducingStats, absorb, inducing_posterior
 from octolgp.mapping.cache import KernelCache, leaf_blocks
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
@@ -63,6 +65,15 @@ def predict_leaf(
     hits, fs, fe = leaf.hits, leaf.free_start, leaf.free_end
     if leaf.n_items == 0:
         return np.zeros(centres.shape[0]), np.full(centres.shape[0], hp.signal_variance), 0
+    if config.online.inducing_per_axis:  # a DTC sparse GP on an inducing lattice
+        items, y = items_and_targets(hits, fs, fe, config, spacing)
+        U = inducing_lattice(leaf, config)
+        stats = absorb(InducingStats.empty(U.shape[0]), U, items, y, hp)
+        ls, sf2 = hp.length_scale, hp.signal_variance
+        Kuu = item_covariance(points_set(U), points_set(U), ls, sf2)
+        Ksu = item_covariance(points_set(centres), points_set(U), ls, sf2)
+        mean, var, repaired = inducing_posterior(stats, Kuu, Ksu, hp)
+        return mean, var, int(repaired)
     if leaf.n_items <= cap or hits.shape[0] == 0:
         if leaf.n_items > cap:  # free space only: an even, deterministic thinning
             keep = np.linspace(0, fs.shape[0] - 1, cap).round().astype(np.int64)
@@ -92,6 +103,18 @@ def predict_leaf(
     tree = cluster_tree(clusters, config.dim)
     mean, var = predict_nearest(tree, gps, centres, hp.signal_variance)
     return mean, var, sum(gp.repaired for gp in gps)
+
+
+def inducing_lattice(leaf: Leaf, config: MapConfig) -> FloatArray:
+    """``k**dim`` inducing points at the cell centres of a ``k``-lattice over the halo box.
+
+    ``k`` is ``OnlineConfig.inducing_per_axis``; metres, world frame, shape (k**dim, d).
+    """
+    grid = LeafGrid.from_config(config)
+    k, d = config.online.inducing_per_axis, config.dim
+    lo, hi = grid.halo_box(leaf.index[None, :])
+    cells = np.stack(np.meshgrid(*[np.arange(k)] * d, indexing="ij"), -1).reshape(-1, d)
+    return np.asarray(lo[0] + (cells + 0.5) * ((hi[0] - lo[0]) / k))
 
 
 @dataclass(frozen=True, slots=True)
