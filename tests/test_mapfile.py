@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
-import os
-import signal
 import sqlite3
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -110,19 +109,13 @@ def _child(path: Path, mode: str = "new", budget: float = 0.3) -> subprocess.Pop
 
 @pytest.mark.parametrize("kill_after", [0, 3, 9, 16])
 def test_sigkill_mid_mission_loses_nothing_durable(
-    tmp_path: Path, kill_after: int, reference: list[dict[int, tuple[bytes, ...]]]
+    tmp_path: Path,
+    kill_after: int,
+    reference: list[dict[int, tuple[bytes, ...]]],
+    sigkill_after: Callable[[subprocess.Popen[str], int], None],
 ) -> None:
     path = tmp_path / "mission.octolgp"
-    child = _child(path)
-    assert child.stdout is not None
-    seen = 0
-    while seen < kill_after:  # wait until kill_after inserts have returned
-        line = child.stdout.readline()
-        assert line, "child ended early"
-        seen = int(line)
-    os.kill(child.pid, signal.SIGKILL)
-    child.wait()
-    child.stdout.close()
+    sigkill_after(_child(path), kill_after)
     if kill_after == 0 and not path.exists():
         return  # killed before the file existed: nothing to check
     with OnlineMap.open(path) as m:

@@ -9,10 +9,9 @@ equals the uninterrupted map of the scans it holds. Default config throughout
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -163,7 +162,11 @@ for k, s in enumerate(office_scans(), start=1):
 
 @pytest.mark.parametrize("kill_after", [12, 40])
 def test_a_killed_map_reopens_as_the_uninterrupted_map(
-    tmp_path: Path, scans: list[Scan], reference: list, kill_after: int
+    tmp_path: Path,
+    scans: list[Scan],
+    reference: list,
+    kill_after: int,
+    sigkill_after: Callable[[subprocess.Popen[str], int], None],
 ) -> None:
     path = tmp_path / "mission.octolgp"
     child = subprocess.Popen(
@@ -172,17 +175,7 @@ def test_a_killed_map_reopens_as_the_uninterrupted_map(
         stdout=subprocess.PIPE,
         text=True,
     )
-    assert child.stdout is not None
-    seen = 0
-    while seen < kill_after:  # wait until kill_after inserts have returned
-        line = child.stdout.readline()
-        assert line, "child ended early"
-        seen = int(line)
-    os.kill(child.pid, signal.SIGKILL)
-    child.wait()
-    for stream in (child.stdout, child.stdin):
-        if stream is not None:
-            stream.close()
+    sigkill_after(child, kill_after)
     with OnlineMap.open(path) as m:
         k = m.n_scans
         assert k in (kill_after, kill_after + 1)

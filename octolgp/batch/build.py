@@ -26,6 +26,7 @@ from octolgp.gp.clusters import fit_clusters
 from octolgp.gp.learning import learn_from_clusters
 from octolgp.gp.quadrature import QuadratureSet, cluster_items, quadrature_spacing
 from octolgp.gp.regression import LocalGP, fit_local_gp
+from octolgp.mapping.fit import batch_bounds
 from octolgp.mapping.online import OnlineMap
 from octolgp.partition import Cluster, partition
 from octolgp.scan import FloatArray, Scan
@@ -126,17 +127,10 @@ def _fit_clusters_on(
     """
     spacing = quadrature_spacing(config, hp.length_scale)
     sets = [cluster_items(data, c, config, spacing) for c in clusters]
-    tasks: list[list[tuple[QuadratureSet, FloatArray]]] = [[]]
-    total = 0
-    for items, y in sets:  # one iteration per cluster
-        tasks[-1].append((items, y))
-        total += items.n_items
-        if total >= TASK_ITEMS:
-            tasks.append([])
-            total = 0
+    bounds = batch_bounds([items.n_items for items, _ in sets], TASK_ITEMS)
     with dask_client(scheduler, None) as client:
         hp_f = client.scatter(hp, broadcast=True)
-        futures = [client.submit(fit_item_sets, t, hp_f, pure=False) for t in tasks if t]
+        futures = [client.submit(fit_item_sets, sets[lo:hi], hp_f, pure=False) for lo, hi in bounds]
         return [gp for fut in futures for gp in fut.result()]
 
 

@@ -30,51 +30,25 @@ from octolgp.batch.dask import dask_client
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.gp.learning import learn_hyperparameters
-from octolgp.mapping.fit import LeafFit, LeafFitter, fit_leaf
+from octolgp.mapping.fit import LeafFit, LeafFitter, batch_bounds, fit_leaves
 from octolgp.mapping.online import OnlineMap
 from octolgp.mapping.store import Leaf
 from octolgp.scan import Scan
 from octolgp.training import check_scans
 
-__all__ = ["TASK_ITEMS", "build_tiled", "fit_leaves"]
+__all__ = ["TASK_ITEMS", "build_tiled", "fit_leaves_task"]
 
 TASK_ITEMS = 20_000
 """Training items (summed over leaves) per Dask task: tasks of ~0.1-1 s, few enough
 that the scheduler's per-task overhead (~1 ms) stays negligible."""
 
 
-def fit_leaves(leaves: list[Leaf], config: MapConfig, hp: Hyperparameters) -> list[LeafFit]:
-    """Fit a batch of leaves in order (a Dask task; BLAS limited to one thread)."""
+def fit_leaves_task(leaves: list[Leaf], config: MapConfig, hp: Hyperparameters) -> list[LeafFit]:
+    """Fit a batch of leaves in order: a Dask task, with BLAS limited to one thread."""
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        return [fit_leaf(leaf, config, hp) for leaf in leaves]
-
-
-def _scan_list(scans: Iterable[Scan], config: MapConfig) -> list[Scan]:
-    """The scans as a checked list of dimension ``config.dim``; refuse none at all."""
-    scan_list = check_scans(scans, config.dim)
-    if not scan_list:
-        raise OctolgpError("scans: no scans to build from")
-    return scan_list
-
-
-def _batches(
-    keys: list[int], leaves: list[Leaf], items: int
-) -> Iterator[tuple[list[int], list[Leaf]]]:
-    """Consecutive groups of leaves holding about ``items`` training items each."""
-    group_k: list[int] = []
-    group_l: list[Leaf] = []
-    total = 0
-    for key, leaf in zip(keys, leaves, strict=True):  # one iteration per leaf
-        group_k.append(key)
-        group_l.append(leaf)
-        total += leaf.n_items
-        if total >= items:
-            yield group_k, group_l
-            group_k, group_l, total = [], [], 0
-    if group_k:
-        yield group_k, group_l
+        return fit_leaves(leaves, config, hp)
 
 
 def build_tiled(
@@ -130,7 +104,7 @@ def build_tiled(
         raise OctolgpError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
     if isinstance(task_items, bool) or not isinstance(task_items, int) or task_items < 1:
         raise OctolgpError(f"task_items must be an integer >= 1, got {task_items!r}")
-    scan_list = _scan_list(scans, config)
+    scan_list = check_scans(scans, config.dim)
     hp = config.hyperparameters
     if hp is None:
         hp = learn_hyperparameters(scan_list[: config.online.learn_scans], config)
@@ -162,11 +136,13 @@ def _dask_fitter(
         with dask_client(scheduler, workers) as client:
             # the config and hyperparameters travel to every worker once
             config_f, hp_f = client.scatter([config, hp], broadcast=True)
+            bounds = batch_bounds([leaf.n_items for leaf in leaves], task_items)
             futures = {
-                client.submit(fit_leaves, group_l, config_f, hp_f, pure=False): group_k
-                for group_k, group_l in _batches(keys, leaves, task_items)
+                client.submit(fit_leaves_task, leaves[lo:hi], config_f, hp_f, pure=False): (lo, hi)
+                for lo, hi in bounds
             }
             for fut in as_completed(futures):  # one iteration per task
-                yield futures.pop(fut), fut.result()
+                lo, hi = futures.pop(fut)
+                yield keys[lo:hi], fut.result()
 
     return fitter

@@ -49,8 +49,6 @@ def build_voxelized(
     if method not in ("lgp", "gp", "mgp", "ogm"):
         raise OctolgpError(f"method must be one of lgp, gp, mgp, ogm here, got {method!r}")
     scan_list = check_scans(scans, config.dim)
-    if not scan_list:
-        raise OctolgpError("scans: no scans to build from")
     gmap = build_map(scan_list, config, method=method, scheduler=scheduler, n_jobs=n_jobs)
     hp = getattr(gmap, "hyperparameters", None)
     m = OnlineMap(dataclasses.replace(config, hyperparameters=hp), path)

@@ -196,6 +196,22 @@ def fit_leaves(
     return list(pool.map(lambda leaf: fit_leaf(leaf, config, hp, cache), leaves))
 
 
+def batch_bounds(sizes: list[int], items: int) -> Iterator[tuple[int, int]]:
+    """``(lo, hi)`` runs of consecutive entries whose sizes sum to about ``items`` each.
+
+    A run closes at the first entry that brings its sum to ``items`` or more; the last
+    run may be smaller. Used to cut leaves (or clusters) into batches of work.
+    """
+    lo = total = 0
+    for i, size in enumerate(sizes):  # one iteration per entry
+        total += size
+        if total >= items:
+            yield lo, i + 1
+            lo, total = i + 1, 0
+    if lo < len(sizes):
+        yield lo, len(sizes)
+
+
 LeafFitter = Callable[[list[int], list[Leaf]], Iterator[tuple[list[int], list[LeafFit]]]]
 """Leaves with evidence → the same leaves fitted, batch by batch (local threads or a
 cluster; :meth:`octolgp.mapping.online.OnlineMap.insert_batch`)."""

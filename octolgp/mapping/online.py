@@ -58,7 +58,7 @@ from octolgp.errors import OctolgpError
 from octolgp.gp.learning import learn_hyperparameters
 from octolgp.mapping.cache import KernelCache
 from octolgp.mapping.evidence import check_scan, gather_batch, gather_evidence
-from octolgp.mapping.fit import LeafFit, LeafFitter, fit_leaves
+from octolgp.mapping.fit import LeafFit, LeafFitter, batch_bounds, fit_leaves
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads
 from octolgp.mapping.store import Leaf, LeafStore, MapStorage
@@ -488,7 +488,7 @@ class OnlineMap(MapReads):
         """
         hp = self.hyperparameters
         assert hp is not None
-        for lo, hi in _batches([leaf.n_items for leaf in leaves], FIT_BATCH_ITEMS):
+        for lo, hi in batch_bounds([leaf.n_items for leaf in leaves], FIT_BATCH_ITEMS):
             group = leaves[lo:hi]
             with self._blas_limit():
                 fits = fit_leaves(group, self.config, hp, None, self._threads(group))
@@ -519,7 +519,7 @@ class OnlineMap(MapReads):
             with self._blas_limit():
                 leaves = [leaf for _, leaf in batch]
                 fits = fit_leaves(leaves, self.config, hp, self.kernel_cache, self._threads(leaves))
-            self.repaired += sum(f.repaired for f in fits)
+            self._count_repairs(fits)
             fitted = [(k, f.leaf) for (k, _), f in zip(batch, fits, strict=True)]
             self.store.apply(fitted)  # each leaf keeps its last-use stamp
             self._commit([k for k, _ in fitted], [], self.n_scans)
@@ -610,15 +610,3 @@ class OnlineMap(MapReads):
             f"OnlineMap(dim={self.config.dim}, resolution={self.config.resolution:g}, "
             f"scans={self.n_scans}, leaves={len(self.store)})"
         )
-
-
-def _batches(sizes: list[int], items: int) -> Iterator[tuple[int, int]]:
-    """``(lo, hi)`` runs of consecutive entries whose sizes sum to about ``items`` each."""
-    lo = total = 0
-    for i, size in enumerate(sizes):  # one iteration per leaf
-        total += size
-        if total >= items:
-            yield lo, i + 1
-            lo, total = i + 1, 0
-    if lo < len(sizes):
-        yield lo, len(sizes)
