@@ -271,14 +271,25 @@ class OnlineConfig:
         the kernel only for the new ones; the result is bit for bit that of a fresh
         fit. Least recently used leaves are dropped first; 0 disables the cache.
         Default 64.
-    inducing_per_axis : int
-        The leaf's GP. ``0`` (default): the exact local GP on all the leaf's items.
-        ``k >= 2``: a DTC sparse GP on ``k**dim`` inducing points spread evenly over
-        the leaf's halo box (:mod:`octolgp.gp.sparse`): the kernel is evaluated
-        between items and inducing points only, not between all node pairs, so a
-        refit costs far less and grows linearly with the leaf's evidence; an
-        approximation (``docs/design-realtime-3d.md`` has its measured error and
-        speed). Experimental: the groundwork of issue #14.
+    engine : {"lattice", "exact"}
+        The leaf GP. ``"lattice"`` (default): each leaf keeps per-voxel observation
+        counts of its halo box and is a sparse GP on an inducing lattice whose
+        kernel tables are shared by every leaf (:mod:`octolgp.gp.lattice`); leaves
+        are fitted many at a time with a few matrix products. ``"exact"``: the
+        paper's local GP on hits and free segments with integral kernels
+        (:mod:`octolgp.gp.kernels`), the reference the lattice engine is tested
+        against; 10-100x slower in 3D (``BENCHMARKS.md``).
+    evidence_cap : int
+        Lattice engine: scans counted per voxel and class (occupied, free). ``1``
+        keeps whether a voxel was ever seen occupied and ever seen free, so a
+        static revisit changes nothing and costs nothing. Default 1.
+    inducing_spacing : float
+        Lattice engine: largest spacing of the inducing lattice as a fraction of the
+        length scale; the lattice gets ``ceil(halo box edge / (spacing × l))`` points
+        per axis, at most ``max_inducing_per_axis``. Default 0.5.
+    max_inducing_per_axis : int
+        Lattice engine: cap on the lattice points per axis (a 3D leaf costs about
+        ``k**6``). Default 0: 8 in 2D, 4 in 3D.
     """
 
     leaf_depth: int | None = None
@@ -292,7 +303,11 @@ class OnlineConfig:
     free_voxels: int = 1
     max_scan_points: int = 1_000_000
     kernel_cache_mb: float = 64.0
-    inducing_per_axis: int = 0
+    engine: str = "lattice"
+    evidence_cap: int = 1
+    free_weight: float = 0.1
+    inducing_spacing: float = 0.5
+    max_inducing_per_axis: int = 0
 
     def __post_init__(self) -> None:
         if self.leaf_depth is not None:
@@ -314,9 +329,16 @@ class OnlineConfig:
         _integer("OnlineConfig", "free_voxels", self.free_voxels, 1, 64)
         _integer("OnlineConfig", "max_scan_points", self.max_scan_points, 1)
         _positive("OnlineConfig", "kernel_cache_mb", self.kernel_cache_mb, allow_zero=True)
-        _integer("OnlineConfig", "inducing_per_axis", self.inducing_per_axis, 0, 32)
-        if self.inducing_per_axis == 1:
-            raise OctolgpError("OnlineConfig.inducing_per_axis must be 0 or >= 2, got 1")
+        if self.engine not in ("lattice", "exact"):
+            raise OctolgpError(
+                f"OnlineConfig.engine must be 'lattice' or 'exact', got {self.engine!r}"
+            )
+        _integer("OnlineConfig", "evidence_cap", self.evidence_cap, 1, 255)
+        _positive("OnlineConfig", "free_weight", self.free_weight)
+        _positive("OnlineConfig", "inducing_spacing", self.inducing_spacing)
+        _integer("OnlineConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 0, 16)
+        if self.max_inducing_per_axis == 1:
+            raise OctolgpError("OnlineConfig.max_inducing_per_axis must be 0 or >= 2, got 1")
 
 
 @dataclass(frozen=True, slots=True)

@@ -102,6 +102,58 @@ def _first_per_voxel(points: FloatArray, resolution: float) -> tuple[IntArray, I
     return first[order].astype(np.int64), rank[inverse.ravel()].astype(np.int64)
 
 
+@dataclass(frozen=True)
+class Beams:
+    """Each beam split into its free segment and its hit (the rule of this module).
+
+    Attributes
+    ----------
+    length : ndarray of shape (b,)
+        Beam length, metres.
+    is_hit : ndarray of bool, shape (b,)
+        The beam ends in a return (not a no-return, not of zero length).
+    has_seg : ndarray of bool, shape (b,)
+        The beam has a free segment of positive length.
+    free_end : ndarray of shape (b, d)
+        End of the free segment (``free_margin`` short of the hit, or at
+        ``max_range`` for a no-return), metres, world frame.
+    """
+
+    length: FloatArray
+    is_hit: NDArray[np.bool_]
+    has_seg: NDArray[np.bool_]
+    free_end: FloatArray
+
+
+def split_beams(
+    origins: FloatArray, ends: FloatArray, max_range: FloatArray, free_margin: float
+) -> Beams:
+    """Split beams into free segments and hits.
+
+    Parameters
+    ----------
+    origins, ends : ndarray of shape (b, d)
+        Sensor position and endpoint of each beam, world frame, metres.
+    max_range : ndarray of shape (b,)
+        No-return range of each beam (``inf`` for none).
+    free_margin : float
+        Metres a free segment stops short of its hit.
+    """
+    vec = ends - origins
+    length = np.linalg.norm(vec, axis=1)
+    valid = length > 1e-9  # an endpoint on the sensor carries no direction
+    # relative tolerance: a range reported at exactly max_range must not round into a hit
+    no_return = valid & (length >= max_range * (1.0 - 1e-9))
+    is_hit = valid & ~no_return
+    direction = np.zeros_like(vec)
+    direction[valid] = vec[valid] / length[valid, None]
+    # Free segment: to max_range for no-returns, else stop free_margin short of the hit.
+    free_len = np.where(no_return, np.minimum(length, max_range), length - free_margin)
+    has_seg = valid & (free_len > 1e-9)
+    free_end = origins + direction * np.maximum(free_len, 0.0)[:, None]
+    return Beams(length, is_hit, has_seg, free_end)
+
+
 def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData:
     """Turn scans into hits and free segments, deduplicated per voxel and class.
 
@@ -123,23 +175,14 @@ def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData
     """
     scan_list = check_scans(scans, config.dim)
     origins, ends, max_range = stack_beams(scan_list)
-    vec = ends - origins
-    length = np.linalg.norm(vec, axis=1)
-    valid = length > 1e-9  # an endpoint on the sensor carries no direction
-    # relative tolerance: a range reported at exactly max_range must not round into a hit
-    no_return = valid & (length >= max_range * (1.0 - 1e-9))
-    is_hit = valid & ~no_return
-    direction = np.zeros_like(vec)
-    direction[valid] = vec[valid] / length[valid, None]
-
-    # Free segment: to max_range for no-returns, else stop free_margin short of the hit.
-    free_len = np.where(no_return, np.minimum(length, max_range), length - config.free_margin)
-    has_seg = valid & (free_len > 1e-9)
+    beams = split_beams(origins, ends, max_range, config.free_margin)
+    is_hit, has_seg = beams.is_hit, beams.has_seg
+    length = beams.length
     hit_index = np.full(length.shape, -1, dtype=np.int64)
     hit_index[is_hit] = np.arange(int(is_hit.sum()))
     hits = ends[is_hit]
     seg_start = origins[has_seg]
-    seg_end = origins[has_seg] + direction[has_seg] * free_len[has_seg, None]
+    seg_end = beams.free_end[has_seg]
     seg_hit = hit_index[has_seg]
 
     if config.training.dedup:

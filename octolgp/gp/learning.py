@@ -125,9 +125,19 @@ def learn_from_clusters(
     spacing = quadrature_spacing(config, initial.length_scale)
     sets = learning_sets(data, clusters, config, spacing)
     ell, sf2, sn2 = fit_kernel(sets, initial, config.learning.min_noise_variance)
-    hp = Hyperparameters(length_scale=ell, signal_variance=sf2, noise_variance=sn2)
     spacing = quadrature_spacing(config, ell)
-    sets = learning_sets(data, clusters, config, spacing)
+    return _with_plsc(learning_sets(data, clusters, config, spacing), ell, sf2, sn2, config)
+
+
+def _with_plsc(
+    sets: list[tuple[QuadratureSet, FloatArray]],
+    ell: float,
+    sf2: float,
+    sn2: float,
+    config: MapConfig,
+) -> Hyperparameters:
+    """The kernel with PLSC α, β fitted by LOO on ``sets`` (and the optional refinement)."""
+    hp = Hyperparameters(length_scale=ell, signal_variance=sf2, noise_variance=sn2)
     mus, vs, ys = [], [], []
     for items, y in sets:
         mu, var = loo_predictions(items, y, hp)
@@ -183,7 +193,9 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
     scans : iterable of Scan
     config : MapConfig
         ``learning`` chooses the data subset: ``max_clusters`` clusters of at most
-        ``max_items_per_cluster`` items each.
+        ``max_items_per_cluster`` items each. Both online engines use the
+        hyperparameters learnt here, on hits and free segments with integral
+        kernels (the paper's model).
 
     Returns
     -------

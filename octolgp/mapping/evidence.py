@@ -3,12 +3,17 @@
 :func:`gather_evidence` assigns a step's hits and free segments to the leaves
 (:func:`octolgp.mapping.grid.assign_points`, :func:`~octolgp.mapping.grid.assign_segments`)
 and returns *new* leaves holding the old evidence plus the new, under the bounded
-evidence rule of :meth:`octolgp.mapping.store.Leaf.with_evidence`. It reads the store
-through a lookup function and never writes it: the map applies the result later.
+evidence rule of :meth:`octolgp.mapping.store.Leaf.with_evidence`.
+:func:`gather_observations` does the same for the lattice engine: a step's voxel
+observation counts (:func:`octolgp.observations.observe`) are added to the count
+arrays of every leaf whose halo box holds the voxel. Both read the store through a
+lookup function and never write it: the map applies the result later.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -17,9 +22,10 @@ import numpy as np
 
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import addressable_range
+from octolgp.geometry.keys import addressable_range, pack_keys
 from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
 from octolgp.mapping.store import Leaf
+from octolgp.observations import VoxelObservations, observe
 from octolgp.scan import Scan, check_scan_size
 from octolgp.training import IntArray, TrainingData, make_training_data
 
@@ -144,6 +150,103 @@ def gather_evidence(
     return Evidence(changed, touched.tolist(), new_items)
 
 
+def gather_observations(
+    obs: VoxelObservations,
+    grid: LeafGrid,
+    config: MapConfig,
+    lookup: Callable[[int], Leaf | None],
+) -> Evidence:
+    """Add voxel observation counts to the leaves whose halo boxes hold the voxels.
+
+    A leaf's counts per halo-box voxel and class saturate at
+    ``online.evidence_cap``; a leaf is *changed* when any of its counts moved.
+
+    Parameters
+    ----------
+    obs : VoxelObservations
+        The step's observations.
+    grid : LeafGrid
+    config : MapConfig
+        Uses ``online.evidence_cap``.
+    lookup : callable
+        The current leaf of a packed key, or ``None``; only read.
+
+    Returns
+    -------
+    Evidence
+        ``new_items`` is the total increase of the counts.
+    """
+    side, halo, d = grid.side, grid.halo_voxels, grid.dim
+    box = side + 2 * halo
+    keys = obs.keys
+    lo = (keys - halo) // side
+    hi = (keys + halo) // side
+    vox_parts, leaf_parts = [], []
+    for offset in itertools.product((0, 1), repeat=d):  # 4 or 8 neighbours
+        cand = lo + np.asarray(offset, dtype=np.int64)
+        ok = (cand <= hi).all(axis=1) & (cand >= 0).all(axis=1)
+        ok &= (cand < (1 << grid.leaf_depth)).all(axis=1)
+        vox_parts.append(np.flatnonzero(ok))
+        leaf_parts.append(cand[ok])
+    voxel = np.concatenate(vox_parts)
+    leaf_index = np.concatenate(leaf_parts)
+    local = keys[voxel] - (leaf_index * side - halo)
+    flat = local @ (box ** np.arange(d, dtype=np.int64))
+    touched, first, inverse = np.unique(
+        pack_keys(leaf_index), return_index=True, return_inverse=True
+    )
+    n_halo = box**d
+    old = np.zeros((touched.size, 2, n_halo), dtype=np.uint8)
+    current: list[Leaf | None] = []
+    for j, key in enumerate(touched.tolist()):  # one iteration per touched leaf
+        leaf = lookup(key)
+        current.append(leaf)
+        if leaf is not None and leaf.counts.shape[1] == n_halo:
+            old[j] = leaf.counts
+    cap = config.online.evidence_cap
+    before_h = old[inverse, 0, flat].astype(np.int64)
+    before_f = old[inverse, 1, flat].astype(np.int64)
+    after_h = np.minimum(before_h + obs.hits[voxel], cap)
+    after_f = np.minimum(before_f + obs.frees[voxel], cap)
+    new = old.copy()
+    new[inverse, 0, flat] = after_h
+    new[inverse, 1, flat] = after_f
+    moved = (after_h != before_h) | (after_f != before_f)
+    changed: list[tuple[int, Leaf]] = []
+    for j in np.unique(inverse[moved]).tolist():  # one iteration per changed leaf
+        leaf = current[j]
+        if leaf is None:
+            leaf = Leaf.empty(leaf_index[first[j]])
+        changed.append((int(touched[j]), dataclasses.replace(leaf, counts=new[j].copy())))
+    gained = int((after_h - before_h).sum() + (after_f - before_f).sum())
+    return Evidence(changed, touched.tolist(), gained)
+
+
+def step_evidence(
+    scans: list[Scan],
+    grid: LeafGrid,
+    config: MapConfig,
+    lookup: Callable[[int], Leaf | None],
+    stats: dict[str, float],
+) -> Evidence:
+    """Scans → training data → the leaves they change, for the map's engine.
+
+    ``stats["training"]`` and ``stats["assign"]`` accumulate the seconds of the two
+    stages. ``config`` is the map's raw config (training data not deduplicated).
+    """
+    t = time.perf_counter()
+    lattice = config.online.engine == "lattice"
+    data = observe(scans, config) if lattice else make_training_data(scans, config)
+    stats["training"] = stats.get("training", 0.0) + time.perf_counter() - t
+    t = time.perf_counter()
+    if isinstance(data, VoxelObservations):
+        evidence = gather_observations(data, grid, config, lookup)
+    else:
+        evidence = gather_evidence(data, grid, config, lookup)
+    stats["assign"] = stats.get("assign", 0.0) + time.perf_counter() - t
+    return evidence
+
+
 def scan_chunks(scans: list[Scan], beams: int) -> Iterator[list[Scan]]:
     """Consecutive runs of scans holding about ``beams`` beams each (at least one scan)."""
     chunk: list[Scan] = []
@@ -201,14 +304,8 @@ def gather_batch(
         return leaf if leaf is not None else lookup(key)
 
     for chunk in scan_chunks(scans, chunk_beams):  # a few hundred thousand beams each
-        t = time.perf_counter()
-        data = make_training_data(chunk, config)
-        stats["training"] += time.perf_counter() - t
-        t = time.perf_counter()
-        evidence = gather_evidence(data, grid, config, current)
-        del data
+        evidence = step_evidence(chunk, grid, config, current, stats)
         new_items += evidence.new_items
         for key, leaf in evidence.changed:  # one iteration per leaf that gained evidence
             gathered[key] = leaf
-        stats["assign"] += time.perf_counter() - t
     return gathered, new_items

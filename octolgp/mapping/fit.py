@@ -12,6 +12,8 @@ workers.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import itertools
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -20,11 +22,16 @@ import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gp.clusters import cluster_tree, fit_clusters, predict_nearest
-from octolgp.gp.kernels import item_covariance
+from octolgp.gp.lattice import (
+    LatticeGeometry,
+    LatticeTables,
+    inducing_per_axis,
+    lattice_posterior,
+    lattice_tables,
+)
 from octolgp.gp.plsc import latent_occupancy
-from octolgp.gp.quadrature import items_and_targets, points_set, quadrature_spacing
+from octolgp.gp.quadrature import items_and_targets, quadrature_spacing
 from octolgp.gp.regression import fit_predict
-from octolgp.gp.sparse import InducingStats, absorb, inducing_posterior
 from octolgp.mapping.cache import KernelCache, leaf_blocks
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
@@ -65,15 +72,6 @@ def predict_leaf(
     hits, fs, fe = leaf.hits, leaf.free_start, leaf.free_end
     if leaf.n_items == 0:
         return np.zeros(centres.shape[0]), np.full(centres.shape[0], hp.signal_variance), 0
-    if config.online.inducing_per_axis:  # a DTC sparse GP on an inducing lattice
-        items, y = items_and_targets(hits, fs, fe, config, spacing)
-        U = inducing_lattice(leaf, config)
-        stats = absorb(InducingStats.empty(U.shape[0]), U, items, y, hp)
-        ls, sf2 = hp.length_scale, hp.signal_variance
-        Kuu = item_covariance(points_set(U), points_set(U), ls, sf2)
-        Ksu = item_covariance(points_set(centres), points_set(U), ls, sf2)
-        mean, var, repaired = inducing_posterior(stats, Kuu, Ksu, hp)
-        return mean, var, int(repaired)
     if leaf.n_items <= cap or hits.shape[0] == 0:
         if leaf.n_items > cap:  # free space only: an even, deterministic thinning
             keep = np.linspace(0, fs.shape[0] - 1, cap).round().astype(np.int64)
@@ -103,18 +101,6 @@ def predict_leaf(
     tree = cluster_tree(clusters, config.dim)
     mean, var = predict_nearest(tree, gps, centres, hp.signal_variance)
     return mean, var, sum(gp.repaired for gp in gps)
-
-
-def inducing_lattice(leaf: Leaf, config: MapConfig) -> FloatArray:
-    """``k**dim`` inducing points at the cell centres of a ``k``-lattice over the halo box.
-
-    ``k`` is ``OnlineConfig.inducing_per_axis``; metres, world frame, shape (k**dim, d).
-    """
-    grid = LeafGrid.from_config(config)
-    k, d = config.online.inducing_per_axis, config.dim
-    lo, hi = grid.halo_box(leaf.index[None, :])
-    cells = np.stack(np.meshgrid(*[np.arange(k)] * d, indexing="ij"), -1).reshape(-1, d)
-    return np.asarray(lo[0] + (cells + 0.5) * ((hi[0] - lo[0]) / k))
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,11 +175,87 @@ def fit_leaves(
 ) -> list[LeafFit]:
     """Fit leaves in order, on ``pool``'s threads when given (BLAS limits are the caller's).
 
-    A Dask task runs it with ``pool=None``; the map runs it on its thread pool.
+    A Dask task runs it with ``pool=None``; the map runs it on its thread pool. The
+    lattice engine fits all the leaves together (:func:`fit_lattice_leaves`).
     """
+    if config.online.engine == "lattice":
+        return fit_lattice_leaves(leaves, config, hp, pool)
     if pool is None or len(leaves) < 2:
         return [fit_leaf(leaf, config, hp, cache) for leaf in leaves]
     return list(pool.map(lambda leaf: fit_leaf(leaf, config, hp, cache), leaves))
+
+
+def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
+    """The lattice of a map's leaves: leaf and halo in voxels, lattice points per axis."""
+    grid = LeafGrid.from_config(config)
+    oc = config.online
+    k_max = oc.max_inducing_per_axis or (8 if config.dim == 2 else 4)
+    box = grid.side + 2 * grid.halo_voxels
+    k = inducing_per_axis(box * grid.resolution, hp.length_scale, oc.inducing_spacing, k_max)
+    return LatticeGeometry(config.dim, grid.side, grid.halo_voxels, k, grid.resolution)
+
+
+@functools.lru_cache(maxsize=8)
+def map_tables(config: MapConfig, hp: Hyperparameters) -> LatticeTables:
+    """The lattice tables of a map (:func:`octolgp.gp.lattice.lattice_tables`), memoised.
+
+    A pure function of its frozen arguments; the cache only saves recomputing them.
+    """
+    return lattice_tables(lattice_geometry(config, hp), hp)
+
+
+def fit_lattice_leaves(
+    leaves: list[Leaf],
+    config: MapConfig,
+    hp: Hyperparameters,
+    pool: Executor | None = None,
+) -> list[LeafFit]:
+    """Fit lattice-engine leaves on their observation counts, all at once (pure).
+
+    Each leaf's latent posterior at its voxel centres comes from
+    :func:`octolgp.gp.lattice.lattice_posterior`, then PLSC and pruning as in
+    :func:`fit_leaf`. With ``pool`` the leaves are split into ``online.n_jobs`` runs.
+
+    Returns
+    -------
+    list of LeafFit
+        One per leaf, in order (a lattice fit never needs a jitter repair).
+    """
+    if not leaves:
+        return []
+    oc = config.online
+    tables = map_tables(config, hp)
+    counts = np.stack([leaf.counts for leaf in leaves])
+    n_halo = tables.phi.shape[0]
+    if counts.shape[2] != n_halo:
+        raise ValueError(f"lattice leaves hold {counts.shape[2]} voxels, expected {n_halo}")
+    runs = 1 if pool is None else min(len(leaves), config.online.n_jobs)
+    bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
+    parts = [(counts[lo:hi, 0], counts[lo:hi, 1]) for lo, hi in itertools.pairwise(bounds)]
+    if pool is None or runs < 2:
+        results = [lattice_posterior(tables, h, f, oc.free_weight) for h, f in parts]
+    else:
+        results = list(pool.map(lambda p: lattice_posterior(tables, *p, oc.free_weight), parts))
+    mean = np.concatenate([r[0] for r in results])
+    var = np.concatenate([r[1] for r in results])
+    prob = latent_occupancy(mean, var, hp)
+    pmax, pmin = prob.max(axis=1), prob.min(axis=1)
+    free, occupied = pmax < oc.prune_free, pmin > oc.prune_occupied
+    pruned = oc.prune & (free | occupied)
+    at = np.where(free, prob.argmax(axis=1), prob.argmin(axis=1))
+    out = []
+    for j, leaf in enumerate(leaves):  # one iteration per leaf: build its record
+        sl = slice(int(at[j]), int(at[j]) + 1) if pruned[j] else slice(None)
+        fitted = dataclasses.replace(
+            leaf,
+            mean=mean[j, sl].astype(np.float32),
+            var=var[j, sl].astype(np.float32),
+            prob=prob[j, sl].astype(np.float32),
+            pruned=bool(pruned[j]),
+            refits=leaf.refits + 1,
+        )
+        out.append(LeafFit(fitted, 0))
+    return out
 
 
 def batch_bounds(sizes: list[int], items: int) -> Iterator[tuple[int, int]]:

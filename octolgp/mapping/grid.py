@@ -81,6 +81,11 @@ class LeafGrid:
         return self.side * self.resolution
 
     @property
+    def halo_voxels(self) -> int:
+        """Whole voxels the halo adds on every side of a leaf (the halo rounded up)."""
+        return int(np.ceil(self.halo * self.side - 1e-9))
+
+    @property
     def voxels_per_leaf(self) -> int:
         """Voxels in a leaf, ``side**dim``."""
         return int(self.side**self.dim)

@@ -57,7 +57,7 @@ from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.gp.learning import learn_hyperparameters
 from octolgp.mapping.cache import KernelCache
-from octolgp.mapping.evidence import check_scan, gather_batch, gather_evidence
+from octolgp.mapping.evidence import check_scan, gather_batch, step_evidence
 from octolgp.mapping.fit import LeafFit, LeafFitter, batch_bounds, fit_leaves
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads
@@ -321,8 +321,8 @@ class OnlineMap(MapReads):
 
     def _learn_and_step(self, journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate | None:
         """Learn on the buffer and insert it; ``None`` (still buffering) without data."""
-        if make_training_data(self._buffer, self._raw_config).n_items == 0:
-            # nothing to learn from yet (every beam on its sensor): keep buffering
+        if not self._can_learn():
+            # nothing to learn from yet (no return, or every beam on its sensor): keep buffering
             if journal:
                 self._commit([], journal, journal[-1][0])
             return None
@@ -343,14 +343,8 @@ class OnlineMap(MapReads):
         index = journal[-1][0] if journal else self.n_scans
         stages: dict[str, float] = {}
         with self._blas_limit():
-            # 1. scan → training data: a hit and a free segment per beam
-            t = time.perf_counter()
-            data = make_training_data(scans, self._raw_config)
-            stages["training"] = time.perf_counter() - t
-            # 2-3. training data → leaves, keeping the first item per voxel
-            t = time.perf_counter()
-            evidence = gather_evidence(data, self.grid, self.config, self.store.get)
-            stages["assign"] = time.perf_counter() - t
+            # 1-3. scan → training data → the leaves it changes (new leaf objects)
+            evidence = step_evidence(scans, self.grid, self._raw_config, self.store.get, stages)
             # 4. leaves → local GP → PLSC, on the map's threads
             t = time.perf_counter()
             leaves = [leaf for _, leaf in evidence.changed]
@@ -593,13 +587,17 @@ class OnlineMap(MapReads):
 
     def _provisional_map(self) -> OnlineMap:
         """A throw-away in-memory map of the buffered scans (what :meth:`flush` would make)."""
-        if make_training_data(self._buffer, self._raw_config).n_items == 0:
+        if not self._can_learn():
             return OnlineMap(dataclasses.replace(self.config, memory_budget_mb=None))
         hp = learn_hyperparameters(self._buffer, self.config)
         config = dataclasses.replace(self.config, hyperparameters=hp, memory_budget_mb=None)
         provisional = OnlineMap(config)
         provisional.insert_batch(self._buffer)
         return provisional
+
+    def _can_learn(self) -> bool:
+        """Whether the buffered scans hold training data to learn from."""
+        return make_training_data(self._buffer, self._raw_config).n_items > 0
 
     def memory_bytes(self) -> int:
         """Bytes held by the leaves (evidence and voxel values)."""

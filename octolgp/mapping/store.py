@@ -75,6 +75,7 @@ class Leaf:
     free_start: FloatArray
     free_end: FloatArray
     free_keys: IntArray
+    counts: NDArray[np.uint8] = field(default_factory=lambda: np.zeros((2, 0), np.uint8))
     mean: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
     var: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
     prob: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
@@ -97,8 +98,8 @@ class Leaf:
 
     @property
     def n_items(self) -> int:
-        """Training items: hits plus free pieces."""
-        return int(self.hits.shape[0] + self.free_start.shape[0])
+        """Training items: hits plus free pieces, or observed (voxel, class) pairs."""
+        return int(self.hits.shape[0] + self.free_start.shape[0] + np.count_nonzero(self.counts))
 
     @property
     def nbytes(self) -> int:
@@ -110,6 +111,7 @@ class Leaf:
             self.free_start,
             self.free_end,
             self.free_keys,
+            self.counts,
             self.mean,
             self.var,
             self.prob,

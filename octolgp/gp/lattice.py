@@ -1,0 +1,305 @@
+r"""The lattice leaf GP: voxel observations, a fixed inducing lattice, batched over leaves.
+
+The fast leaf engine of the online map (``OnlineConfig.engine = "lattice"``; the
+design and the measurements behind it are in ``docs/design-realtime-3d.md``).
+
+**Model.** A leaf's training data are its halo box's *voxel observations*: voxel
+``v`` was seen ``h_v`` times with a return (target +1) and ``f_v`` times crossed by a
+free segment (target −1), each a point observation of the latent ``f`` at the voxel
+centre with noise ``σn²``. The latent is a DTC sparse GP (Quiñonero-Candela &
+Rasmussen 2005) on ``m = k**d`` inducing points ``u`` on a regular lattice over the
+halo box, in whitened form: with ``K_uu = L Lᵀ`` and the feature of a point
+``φ(x) = L⁻¹ k_u(x)``,
+
+.. math::
+
+    A = I + σ_n^{-2} \sum_v w_v φ_v φ_vᵀ,\quad b = σ_n^{-2} \sum_v s_v φ_v,
+    \quad w_v = h_v + f_v,\ s_v = h_v − f_v,
+
+    μ(x) = φ(x)ᵀ A^{-1} b,\qquad
+    σ^2(x) = k(x, x) − |φ(x)|^2 + φ(x)ᵀ A^{-1} φ(x).
+
+Far from any observation ``A → I`` and the posterior returns to the prior ``(0, σf²)``;
+with the lattice at the observed voxels it is the exact GP on them.
+
+**Why it is fast.** The voxel centres of every leaf's halo box and the lattice sit at
+the same offsets from the leaf's corner in every leaf, so ``φ`` of every halo voxel
+(``Φ``, ``H × m``) and of every leaf voxel (``Ψ``, ``V × m``) are *one pair of tables
+for the whole map* (:func:`lattice_tables`): fitting a leaf evaluates no kernel at
+all. It is ``Φ_vᵀ Φ_v`` over the leaf's observed voxels, one Cholesky of ``m × m``
+and two small products, stacked over many leaves into a few BLAS calls
+(:func:`lattice_posterior`). The posterior is a pure function of the counts, so the
+order in which scans arrive cannot change a leaf.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
+
+from octolgp.config import Hyperparameters
+from octolgp.gp.kernels import matern32
+from octolgp.scan import FloatArray
+
+IntArray = NDArray[np.int64]
+
+JITTER = 1e-8
+"""Relative jitter on the lattice covariance ``K_uu`` (its Cholesky is taken once)."""
+
+
+@dataclass(frozen=True, slots=True)
+class LatticeGeometry:
+    """Where the voxels and the inducing lattice of one leaf sit, in voxels.
+
+    Attributes
+    ----------
+    dim : int
+        2 or 3.
+    side : int
+        Voxels along a leaf's edge.
+    halo : int
+        Voxels the halo box adds on every side.
+    k : int
+        Inducing points per axis (``m = k**dim``).
+    resolution : float
+        Voxel edge, metres.
+    """
+
+    dim: int
+    side: int
+    halo: int
+    k: int
+    resolution: float
+
+    @property
+    def box(self) -> int:
+        """Voxels along the halo box's edge, ``side + 2 halo``."""
+        return self.side + 2 * self.halo
+
+    @property
+    def n_halo(self) -> int:
+        """Voxels in the halo box, ``H = box**dim``."""
+        return int(self.box**self.dim)
+
+    @property
+    def n_inducing(self) -> int:
+        """Inducing points, ``m = k**dim``."""
+        return int(self.k**self.dim)
+
+    def halo_centres(self) -> FloatArray:
+        """Halo-box voxel centres relative to the leaf's lower corner, (H, d), x fastest."""
+        steps = (np.arange(self.box) - self.halo + 0.5) * self.resolution
+        return _lattice(steps, self.dim)
+
+    def leaf_centres(self) -> FloatArray:
+        """The leaf's own voxel centres relative to its lower corner, (V, d), x fastest."""
+        return _lattice((np.arange(self.side) + 0.5) * self.resolution, self.dim)
+
+    def inducing_points(self) -> FloatArray:
+        """Inducing points at the cell centres of a ``k``-lattice over the halo box, (m, d)."""
+        edge = self.box * self.resolution
+        steps = -self.halo * self.resolution + (np.arange(self.k) + 0.5) * (edge / self.k)
+        return _lattice(steps, self.dim)
+
+
+def _lattice(steps: FloatArray, dim: int) -> FloatArray:
+    """All points of ``steps`` per axis, (len**dim, dim), x fastest."""
+    grids = np.meshgrid(*([steps] * dim), indexing="ij")
+    return np.stack([g.ravel(order="F") for g in grids], axis=1)
+
+
+def inducing_per_axis(box_edge: float, length_scale: float, spacing: float, k_max: int) -> int:
+    """Lattice points per axis so that they are at most ``spacing × length_scale`` apart.
+
+    Parameters
+    ----------
+    box_edge : float
+        Halo box edge, metres.
+    length_scale : float
+        Kernel length scale, metres.
+    spacing : float
+        Largest lattice spacing as a fraction of the length scale.
+    k_max : int
+        Upper bound (cost grows as ``k**(3 d)``).
+    """
+    k = math.ceil(box_edge / (spacing * length_scale) - 1e-9)
+    return int(min(max(k, 2), k_max))
+
+
+@dataclass(frozen=True, slots=True)
+class LatticeTables:
+    """The constant tables of a map's lattice leaf GP (read-only arrays).
+
+    Attributes
+    ----------
+    geometry : LatticeGeometry
+    phi : ndarray of shape (H, m)
+        Whitened features ``L⁻¹ k_u(x)`` of the halo-box voxel centres.
+    pairs : ndarray of shape (H, m (m + 1) / 2)
+        ``φ_i φ_j`` (``i <= j``, row-major upper triangle) of each halo voxel, so that
+        one matrix product gives the upper triangles of many leaves' ``Φᵀ W Φ``.
+    psi_t : ndarray of shape (m, V)
+        Features of the leaf's own voxel centres, transposed.
+    residual : ndarray of shape (V,)
+        ``k(x, x) − |ψ(x)|²``: prior variance the lattice cannot explain, >= 0.
+    noise_variance : float
+        ``σn²``.
+    """
+
+    geometry: LatticeGeometry
+    phi: FloatArray
+    pairs: FloatArray
+    psi_t: FloatArray
+    residual: FloatArray
+    noise_variance: float
+
+
+def _frozen(a: FloatArray) -> FloatArray:
+    out = np.ascontiguousarray(a, dtype=np.float64)
+    out.setflags(write=False)
+    return out
+
+
+def _kernel(A: FloatArray, B: FloatArray, hp: Hyperparameters) -> FloatArray:
+    """Matérn 3/2 between point sets ``A`` (n, d) and ``B`` (p, d)."""
+    r = np.sqrt(((A[:, None, :] - B[None, :, :]) ** 2).sum(-1))
+    return matern32(r, hp.length_scale, hp.signal_variance)
+
+
+def lattice_tables(geometry: LatticeGeometry, hp: Hyperparameters) -> LatticeTables:
+    """Build the feature tables of a lattice (once per map and hyperparameters).
+
+    Parameters
+    ----------
+    geometry : LatticeGeometry
+    hp : Hyperparameters
+        Uses ``length_scale``, ``signal_variance`` and ``noise_variance``.
+
+    Returns
+    -------
+    LatticeTables
+    """
+    U = geometry.inducing_points()
+    Kuu = _kernel(U, U, hp)
+    Kuu[np.diag_indices_from(Kuu)] += JITTER * hp.signal_variance
+    L = np.linalg.cholesky(Kuu)
+    phi = solve_triangular(L, _kernel(U, geometry.halo_centres(), hp), lower=True).T
+    psi = solve_triangular(L, _kernel(U, geometry.leaf_centres(), hp), lower=True).T
+    iu, ju = np.triu_indices(U.shape[0])
+    residual = np.maximum(hp.signal_variance - (psi * psi).sum(1), 0.0)
+    return LatticeTables(
+        geometry,
+        _frozen(phi),
+        _frozen(phi[:, iu] * phi[:, ju]),
+        _frozen(psi.T),
+        _frozen(residual),
+        hp.noise_variance,
+    )
+
+
+CHUNK_BYTES = 16 << 20
+"""Bytes of the largest transient array of one chunk of leaves in :func:`lattice_posterior`
+(bounded chunks reuse freed memory instead of faulting in fresh pages)."""
+
+
+def lattice_posterior(
+    tables: LatticeTables,
+    hits: NDArray[np.integer],
+    frees: NDArray[np.integer],
+    free_weight: float = 1.0,
+) -> tuple[FloatArray, FloatArray]:
+    """Latent posterior at the voxel centres of many leaves at once.
+
+    Parameters
+    ----------
+    tables : LatticeTables
+    hits, frees : ndarray of int, shape (L, H)
+        Per leaf and halo-box voxel (x fastest), how often the voxel was observed
+        with a return and free.
+
+    Returns
+    -------
+    mean, var : ndarray of shape (L, V)
+        Latent mean and variance (without the noise) at each leaf's voxel centres.
+    """
+    n_leaves = hits.shape[0]
+    m, n_vox = tables.psi_t.shape
+    per_leaf = 8 * max(m * m, m * n_vox, tables.pairs.shape[1])
+    step = max(1, CHUNK_BYTES // per_leaf)
+    mean = np.empty((n_leaves, n_vox))
+    var = np.empty((n_leaves, n_vox))
+    for lo in range(0, n_leaves, step):  # one chunk of leaves per iteration
+        hi = min(lo + step, n_leaves)
+        mean[lo:hi], var[lo:hi] = _posterior_chunk(
+            tables, hits[lo:hi], frees[lo:hi], free_weight
+        )
+    return mean, var
+
+
+def _posterior_chunk(
+    tables: LatticeTables,
+    hits: NDArray[np.integer],
+    frees: NDArray[np.integer],
+    free_weight: float,
+) -> tuple[FloatArray, FloatArray]:
+    """:func:`lattice_posterior` of one chunk of leaves: a few large matrix products."""
+    n = hits.shape[0]
+    m, n_vox = tables.psi_t.shape
+    prec = 1.0 / tables.noise_variance
+    h = hits.astype(np.float64)
+    f = frees * free_weight
+    upper = ((h + f) * prec) @ tables.pairs  # (n, m (m+1)/2): upper triangles of Φᵀ W Φ
+    iu, ju = np.triu_indices(m)
+    A = np.empty((n, m, m))
+    A[:, iu, ju] = upper
+    A[:, ju, iu] = upper
+    A[:, np.arange(m), np.arange(m)] += 1.0
+    b = ((h - f) * prec) @ tables.phi  # (n, m)
+    Ainv = np.linalg.inv(A)  # A >= I, so well conditioned
+    alpha = np.matmul(Ainv, b[:, :, None])[:, :, 0]
+    mean = alpha @ tables.psi_t
+    # diag(Ψ A⁻¹ Ψᵀ) for every leaf: one product of the stacked inverses with Ψᵀ
+    T = (Ainv.reshape(n * m, m) @ tables.psi_t).reshape(n, m, n_vox)
+    T *= tables.psi_t
+    var = tables.residual + T.sum(1)
+    return mean, var
+
+
+def dtc_reference(
+    inducing: FloatArray,
+    points: FloatArray,
+    y: FloatArray,
+    test: FloatArray,
+    hp: Hyperparameters,
+) -> tuple[FloatArray, FloatArray]:
+    """The DTC posterior written out directly, for one leaf (the reference of the tests).
+
+    ``Σ = (K_uu + σn⁻² K_uf K_fu)⁻¹``, ``μ = σn⁻² K_*u Σ K_uf y``,
+    ``σ² = k_** − K_*u K_uu⁻¹ K_u* + K_*u Σ K_u*`` (R&W §8.3.3).
+
+    Parameters
+    ----------
+    inducing : ndarray of shape (m, d)
+    points : ndarray of shape (n, d)
+        Observation points (repeated for repeated observations).
+    y : ndarray of shape (n,)
+    test : ndarray of shape (t, d)
+    hp : Hyperparameters
+
+    Returns
+    -------
+    mean, var : ndarray of shape (t,)
+    """
+    Kuu = _kernel(inducing, inducing, hp)
+    Kuu[np.diag_indices_from(Kuu)] += JITTER * hp.signal_variance
+    Kuf = _kernel(inducing, points, hp)
+    Ksu = _kernel(test, inducing, hp)
+    S = np.linalg.inv(Kuu + Kuf @ Kuf.T / hp.noise_variance)
+    mean = Ksu @ S @ Kuf @ y / hp.noise_variance
+    q = np.einsum("ij,ji->i", Ksu, np.linalg.solve(Kuu, Ksu.T))
+    var = hp.signal_variance - q + np.einsum("ij,ji->i", Ksu, S @ Ksu.T)
+    return mean, var
