@@ -274,18 +274,22 @@ def test_non_positive_definite_kernel_is_repaired_by_jitter_and_counted() -> Non
 
 
 def test_online_map_reports_repaired_leaves() -> None:
-    from octolgp import MapConfig, OnlineMap, Scan
+    from octolgp import MapConfig, OnlineConfig, OnlineMap, Scan
 
     # two hits 2e-12 m apart on either side of a voxel border: both kept (one per
     # voxel), nearly coincident, so with no noise the leaf's kernel matrix is singular
+    # (the exact engine's: lattice leaves never need a jitter repair)
+    exact = OnlineConfig(engine="exact")
     hp = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)
-    m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp))
+    m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp, online=exact))
     pts = np.array([[1.0 - 1e-12, 0.05], [1.0 + 1e-12, 0.05], [1.0, 0.35]])
     update = m.insert_scan(Scan(np.zeros(2), pts))
     assert update.repaired >= 1
     assert np.isfinite(m.voxels()[1]).all()
     # a second map in the same process does not see the first map's repairs
-    other = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters()))
+    other = OnlineMap(
+        MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters(), online=exact)
+    )
     assert other.insert_scan(Scan(np.zeros(2), pts)).repaired == 0
     assert other.repaired == 0
     assert m.repaired == update.repaired
@@ -295,13 +299,14 @@ def test_concurrent_maps_count_only_their_own_repairs() -> None:
     """Two maps fitting at the same time on two threads: each sees its own repairs only."""
     import threading
 
-    from octolgp import MapConfig, OnlineMap, Scan
+    from octolgp import MapConfig, OnlineConfig, OnlineMap, Scan
 
     bad = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)  # no noise: near-coincident hits repair
     pts = np.array([[1.0 - 1e-12, 0.05], [1.0 + 1e-12, 0.05], [1.0, 0.35]])
     healthy = np.c_[np.full(20, 2.0), np.linspace(-1, 1, 20)]
-    a = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=bad))
-    b = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters()))
+    exact = OnlineConfig(engine="exact")  # jitter repairs are the exact engine's
+    a = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=bad, online=exact))
+    b = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters(), online=exact))
     counts: dict[str, list[int]] = {"a": [], "b": []}
 
     def feed(m: OnlineMap, name: str, points: np.ndarray) -> None:

@@ -29,7 +29,7 @@ def _scans() -> list:  # type: ignore[type-arg]
 
 
 def _values(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
-    fields = ("hits", "free_start", "free_end", "mean", "var", "prob")
+    fields = ("hits", "free_start", "free_end", "counts", "mean", "var", "prob")
     return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
 
 

@@ -26,6 +26,7 @@ from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
 from octolgp.mapping.store import Leaf
 from octolgp.sim.scenes import simulate_paper2d
 
+ENGINES = ["lattice", "exact"]
 HP = Hyperparameters(length_scale=0.8, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
 
 
@@ -50,7 +51,7 @@ def config2d(**online: object) -> MapConfig:
 
 def snapshot(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
     """Every stored array of every leaf, as bytes."""
-    fields = ("hits", "free_start", "free_end", "mean", "var", "prob")
+    fields = ("hits", "free_start", "free_end", "counts", "mean", "var", "prob")
     return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
 
 
@@ -133,8 +134,9 @@ def test_leaf_keeps_first_item_per_voxel() -> None:
 
 
 # ---------------------------------------------------------------- updates
-def test_untouched_leaves_are_bit_for_bit_unchanged() -> None:
-    m = OnlineMap(config2d())
+@pytest.mark.parametrize("engine", ENGINES)
+def test_untouched_leaves_are_bit_for_bit_unchanged(engine: str) -> None:
+    m = OnlineMap(config2d(engine=engine))
     m.insert_scan(room_scan((-2.5, -2.5), size=4.0))
     before = snapshot(m)
     second = Scan(origin=[-2.5, -2.5], points=[[-1.0, -2.5], [-2.5, -1.2]])
@@ -149,20 +151,22 @@ def test_untouched_leaves_are_bit_for_bit_unchanged() -> None:
     assert m.store.get(max(before)).refits == 1  # type: ignore[union-attr]
 
 
-def test_one_by_one_equals_all_at_once() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_one_by_one_equals_all_at_once(engine: str) -> None:
     scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1), (-1, 2)]]
-    a = OnlineMap(config2d())
+    a = OnlineMap(config2d(engine=engine))
     for s in scans:
         a.insert_scan(s)
-    b = OnlineMap(config2d())
+    b = OnlineMap(config2d(engine=engine))
     b.insert_batch(scans)
     assert snapshot(a) == snapshot(b)
     assert a.n_scans == b.n_scans == len(scans)
 
 
-def test_revisiting_adds_nothing_and_memory_saturates() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_revisiting_adds_nothing_and_memory_saturates(engine: str) -> None:
     scans = [room_scan((x, 0.5 * x)) for x in np.linspace(-2, 2, 5)]
-    m = OnlineMap(config2d())
+    m = OnlineMap(config2d(engine=engine))
     m.insert_scans(scans)
     first = snapshot(m)
     mem = m.memory_bytes()
@@ -175,7 +179,8 @@ def test_revisiting_adds_nothing_and_memory_saturates() -> None:
 
 def test_evidence_per_leaf_is_bounded_by_its_voxels() -> None:
     rng = np.random.default_rng(3)
-    m = OnlineMap(config2d(max_leaf_items=10_000))
+    # exact engine: the bound is on its hits and free pieces (lattice leaves keep counts)
+    m = OnlineMap(config2d(max_leaf_items=10_000, engine="exact"))
     for _ in range(30):
         m.insert_scan(room_scan(tuple(rng.uniform(-3, 3, 2)), n=180, size=4.0))
     halo_voxels = int(np.ceil(m.grid.side * (1 + 2 * m.grid.halo)) + 1) ** 2
@@ -184,10 +189,11 @@ def test_evidence_per_leaf_is_bounded_by_its_voxels() -> None:
         assert np.unique(leaf.free_keys).size == leaf.free_keys.size <= 4 * halo_voxels
 
 
-def test_threads_give_identical_maps() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_threads_give_identical_maps(engine: str) -> None:
     scans = [room_scan((x, -x)) for x in (-2.0, 0.0, 2.0)]
-    a = OnlineMap(config2d(n_jobs=1))
-    b = OnlineMap(config2d(n_jobs=2))
+    a = OnlineMap(config2d(engine=engine, n_jobs=1))
+    b = OnlineMap(config2d(engine=engine, n_jobs=2))
     a.insert_scans(scans)
     b.insert_scans(scans)
     b.close()
@@ -195,10 +201,11 @@ def test_threads_give_identical_maps() -> None:
 
 
 def test_leaf_over_the_cap_is_split_by_kmeans() -> None:
+    # exact engine: max_leaf_items and the k-means split are its own (lattice leaves never split)
     scans = [room_scan((x, 0.0), n=360) for x in (-3.0, -2.8)]
-    small = OnlineMap(config2d(max_leaf_items=40))
+    small = OnlineMap(config2d(max_leaf_items=40, engine="exact"))
     small.insert_scans(scans)
-    big = OnlineMap(config2d())
+    big = OnlineMap(config2d(engine="exact"))
     big.insert_scans(scans)
     corner = np.array([[-3.95, -3.95], [-3.95, 3.95], [-3.0, -3.9]])
     assert (small.occupancy(corner) > 0.5).all()
@@ -207,12 +214,14 @@ def test_leaf_over_the_cap_is_split_by_kmeans() -> None:
 
 
 # ---------------------------------------------------------------- against batch
-def test_online_matches_batch_on_the_paper_simulation() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_online_matches_batch_on_the_paper_simulation(engine: str) -> None:
     data = simulate_paper2d(seed=0)
     config = MapConfig(
         dim=2,
         resolution=0.2,
         hyperparameters=Hyperparameters(1.2, 1.0, 0.1, 6.0, -0.2),
+        online=OnlineConfig(engine=engine),
     )
     batch = build_map(data.scans, config, method="lgp")
     online = OnlineMap(config)
@@ -408,13 +417,14 @@ def test_queries_answer_provisionally_and_never_learn() -> None:
     np.testing.assert_array_equal(m.occupancy(probe), flushed.occupancy(probe))
 
 
-def test_set_hyperparameters_refits_every_leaf() -> None:
+@pytest.mark.parametrize("engine", ENGINES)
+def test_set_hyperparameters_refits_every_leaf(engine: str) -> None:
     scans = [room_scan((x, 0.0)) for x in (-1.0, 1.0)]
     other = dataclasses.replace(HP, length_scale=0.5)
-    m = OnlineMap(config2d())
+    m = OnlineMap(config2d(engine=engine))
     m.insert_scans(scans)
     m.set_hyperparameters(other)
-    fresh = OnlineMap(dataclasses.replace(config2d(), hyperparameters=other))
+    fresh = OnlineMap(dataclasses.replace(config2d(engine=engine), hyperparameters=other))
     fresh.insert_scans(scans)
     assert {k: v[3:] for k, v in snapshot(m).items()} == {
         k: v[3:] for k, v in snapshot(fresh).items()
@@ -422,10 +432,11 @@ def test_set_hyperparameters_refits_every_leaf() -> None:
 
 
 # ---------------------------------------------------------------- files
-def test_map_file_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
+@pytest.mark.parametrize("engine", ENGINES)
+def test_map_file_round_trip(tmp_path, engine: str) -> None:  # type: ignore[no-untyped-def]
     scans = [room_scan((x, 0.0)) for x in (-1.0, 1.0)]
     path = tmp_path / "m.octolgp"
-    with OnlineMap(config2d(), path=path) as m:
+    with OnlineMap(config2d(engine=engine), path=path) as m:
         m.insert_scans(scans)
         want = snapshot(m)
         probe = np.random.default_rng(0).uniform(-4, 4, (500, 2))
@@ -433,7 +444,7 @@ def test_map_file_round_trip(tmp_path) -> None:  # type: ignore[no-untyped-def]
     with OnlineMap.open(path) as back:
         assert back.n_scans == 2
         assert back.hyperparameters == HP
-        assert back.config == config2d()
+        assert back.config == config2d(engine=engine)
         assert snapshot(back) == want
         assert np.array_equal(back.occupancy(probe), prob)
         back.insert_scan(room_scan((0.0, 1.0)))  # keeps writing through
@@ -488,9 +499,10 @@ def test_downsample_keeps_one_real_beam_per_voxel() -> None:
 
 
 def test_coarser_free_voxels_keep_fewer_pieces() -> None:
+    # exact engine: free_voxels thins its free pieces (lattice leaves keep counts)
     scans = [room_scan((x, 0.2 * x), n=180) for x in (-2.0, 0.0, 2.0)]
-    fine = OnlineMap(config2d())
-    coarse = OnlineMap(config2d(free_voxels=3))
+    fine = OnlineMap(config2d(engine="exact"))
+    coarse = OnlineMap(config2d(free_voxels=3, engine="exact"))
     fine.insert_scans(scans)
     coarse.insert_scans(scans)
     n_fine = sum(leaf.free_start.shape[0] for _, leaf in fine.leaves())

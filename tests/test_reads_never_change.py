@@ -47,7 +47,7 @@ def office_scans(n: int = N_SCANS) -> list[Scan]:
 
 def values(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
     """Every stored array of every leaf, as bytes."""
-    fields = ("hits", "free_start", "free_end", "mean", "var", "prob")
+    fields = ("hits", "free_start", "free_end", "counts", "mean", "var", "prob")
     return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
 
 
