@@ -234,7 +234,8 @@ class OnlineConfig:
     leaf_depth : int or None
         OctoMap tree depth of the leaves; a leaf spans ``2**(tree_depth -
         leaf_depth)`` voxels per axis. ``None`` (default) gives 16 × 16 voxels in
-        2D and 8 × 8 × 8 in 3D.
+        2D and, in 3D, 4 × 4 × 4 for the lattice engine and 8 × 8 × 8 for the exact
+        one (:attr:`MapConfig.leaf_depth`).
     halo : float
         Overlap margin around each leaf as a fraction of its edge, in ``[0, 0.5)``.
         Default 0.2.
@@ -283,13 +284,19 @@ class OnlineConfig:
         Lattice engine: scans counted per voxel and class (occupied, free). ``1``
         keeps whether a voxel was ever seen occupied and ever seen free, so a
         static revisit changes nothing and costs nothing. Default 1.
+    free_weight : float
+        Lattice engine: a voxel seen free counts this much of a voxel seen occupied
+        (its noise variance is ``σn² / free_weight``), so that free space, which a
+        scan observes in far more voxels than it hits, does not swamp the returns.
+        Default 0.3: held-out AUC on Intel was flat over 0.1-0.3, FR079 rose with it
+        up to 0.5, the simulated lidar room peaked at 0.3 (``BENCHMARKS.md``).
     inducing_spacing : float
         Lattice engine: largest spacing of the inducing lattice as a fraction of the
         length scale; the lattice gets ``ceil(halo box edge / (spacing × l))`` points
         per axis, at most ``max_inducing_per_axis``. Default 0.5.
     max_inducing_per_axis : int
         Lattice engine: cap on the lattice points per axis (a 3D leaf costs about
-        ``k**6``). Default 0: 8 in 2D, 4 in 3D.
+        ``k**6``). Default 0: 16 in 2D, 4 in 3D.
     """
 
     leaf_depth: int | None = None
@@ -305,7 +312,7 @@ class OnlineConfig:
     kernel_cache_mb: float = 64.0
     engine: str = "lattice"
     evidence_cap: int = 1
-    free_weight: float = 0.1
+    free_weight: float = 0.3
     inducing_spacing: float = 0.5
     max_inducing_per_axis: int = 0
 
@@ -393,14 +400,25 @@ class MapConfig:
                 continue
             if not isinstance(value, kind):
                 raise OctolgpError(f"MapConfig.{name} must be a {kind.__name__}, got {value!r}")
-        leaf_depth = self.online.leaf_depth
-        if leaf_depth is None:
-            leaf_depth = self.tree_depth - (4 if self.dim == 2 else 3)
+        leaf_depth = self.leaf_depth
         if not 1 <= leaf_depth <= self.tree_depth:
             raise OctolgpError(
                 f"OnlineConfig.leaf_depth must be in 1..MapConfig.tree_depth "
                 f"({self.tree_depth}), got {leaf_depth}"
             )
+
+    @property
+    def leaf_depth(self) -> int:
+        """Tree depth of the online map's leaves (``online.leaf_depth`` or the default).
+
+        Default: leaves of 16 x 16 voxels in 2D; in 3D 4 x 4 x 4 for the lattice engine
+        (its cost per voxel grows with the leaf) and 8 x 8 x 8 for the exact one.
+        """
+        if self.online.leaf_depth is not None:
+            return self.online.leaf_depth
+        if self.dim == 2:
+            return self.tree_depth - 4
+        return self.tree_depth - (2 if self.online.engine == "lattice" else 3)
 
     @property
     def free_margin(self) -> float:

@@ -61,6 +61,27 @@ class VoxelObservations:
         return int(self.hits.size)
 
 
+def sorted_unique(values: IntArray) -> IntArray:
+    """``np.unique`` of an int64 array by one sort (numpy's hash-based unique is slower here)."""
+    a = np.sort(values, kind="stable" if values.size < 64 else "quicksort")
+    if a.size == 0:
+        return a
+    keep = np.empty(a.size, dtype=bool)
+    keep[0] = True
+    np.not_equal(a[1:], a[:-1], out=keep[1:])
+    out: IntArray = a[keep]
+    return out
+
+
+def _unique_counts(values: IntArray) -> tuple[IntArray, IntArray]:
+    """Sorted unique values and how often each occurs."""
+    a = np.sort(values)
+    if a.size == 0:
+        return a, np.zeros(0, dtype=np.int64)
+    starts = np.flatnonzero(np.r_[True, a[1:] != a[:-1]])
+    return a[starts], np.diff(np.r_[starts, a.size]).astype(np.int64)
+
+
 def _voxel_keys(points: np.ndarray, resolution: float, tree_depth: int) -> IntArray:
     """OctoMap keys of points known to be addressable (no range check), (n, d)."""
     keys: IntArray = np.floor(points / resolution).astype(np.int64) + (1 << (tree_depth - 1))
@@ -85,6 +106,10 @@ def _free_codes(
     step = resolution / SAMPLES_PER_VOXEL
     seg_len = np.linalg.norm(free_end - origins, axis=1)
     n_samples = np.floor(seg_len / step).astype(np.int64) + 2  # every step, and the end
+    # per axis, in voxels: start and change per metre along the segment
+    start = origins / resolution
+    slope = (free_end - origins) / (resolution * np.maximum(seg_len, 1e-300))[:, None]
+    offset = 1 << (tree_depth - 1)
     parts: list[IntArray] = []
     ends = np.cumsum(n_samples)
     lo = 0
@@ -95,15 +120,19 @@ def _free_codes(
         beam = np.repeat(np.arange(lo, hi), counts)
         first = np.cumsum(counts) - counts
         j = np.arange(beam.size) - np.repeat(first, counts)
-        t = np.minimum(j * step, seg_len[beam]) / np.maximum(seg_len[beam], 1e-300)
-        pts = origins[beam] + (free_end[beam] - origins[beam]) * t[:, None]
-        codes = _scan_codes(pack_keys(_voxel_keys(pts, resolution, tree_depth)), scan[beam], dim)
-        keep = np.r_[True, codes[1:] != codes[:-1]]  # consecutive samples in one voxel
-        parts.append(np.unique(codes[keep]))
+        dist = np.minimum(j * step, seg_len[beam])  # metres along the segment
+        codes = scan[beam] << (KEY_BITS * dim)
+        for axis in range(dim):  # per axis: floor of the coordinate in voxels, packed
+            u = start[beam, axis] + slope[beam, axis] * dist
+            codes |= (np.floor(u).astype(np.int64) + offset) << (KEY_BITS * axis)
+        keep = np.empty(codes.size, dtype=bool)  # consecutive samples in one voxel
+        keep[0] = True
+        np.not_equal(codes[1:], codes[:-1], out=keep[1:])
+        parts.append(sorted_unique(codes[keep]))
         lo = hi
     if not parts:
         return np.zeros(0, dtype=np.int64)
-    return np.unique(np.concatenate(parts))
+    return sorted_unique(np.concatenate(parts))
 
 
 def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
@@ -136,17 +165,15 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     origins, ends, max_range = stack_beams(scan_list)
     scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
     beams = split_beams(origins, ends, max_range, config.free_margin)
-    hit_codes = np.unique(
-        _scan_codes(
-            pack_keys(_voxel_keys(ends[beams.is_hit], res, depth)), scan[beams.is_hit], dim
-        )
+    hit_codes = sorted_unique(
+        _scan_codes(pack_keys(_voxel_keys(ends[beams.is_hit], res, depth)), scan[beams.is_hit], dim)
     )
     seg = beams.has_seg
     free_codes = _free_codes(origins[seg], beams.free_end[seg], scan[seg], res, depth)
     free_codes = free_codes[~np.isin(free_codes, hit_codes, assume_unique=True)]
     mask = (1 << (KEY_BITS * dim)) - 1
-    hit_vox, hit_n = np.unique(hit_codes & mask, return_counts=True)
-    free_vox, free_n = np.unique(free_codes & mask, return_counts=True)
+    hit_vox, hit_n = _unique_counts(hit_codes & mask)
+    free_vox, free_n = _unique_counts(free_codes & mask)
     return _combine(hit_vox, hit_n, free_vox, free_n, dim)
 
 
@@ -154,7 +181,7 @@ def _combine(
     hit_vox: IntArray, hit_n: IntArray, free_vox: IntArray, free_n: IntArray, dim: int
 ) -> VoxelObservations:
     """Observations from sorted unique packed voxels with their hit and free counts."""
-    packed = np.union1d(hit_vox, free_vox)
+    packed = sorted_unique(np.concatenate([hit_vox, free_vox]))
     hits = np.zeros(packed.size, dtype=np.int64)
     frees = np.zeros(packed.size, dtype=np.int64)
     hits[np.searchsorted(packed, hit_vox)] = hit_n

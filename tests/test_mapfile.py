@@ -227,3 +227,43 @@ def test_reopened_budget_map_evicts_into_its_own_file(
         assert m.memory_bytes() <= 0.2e6
         assert _values(m) == reference[-1]
     assert set(Path(tempfile.gettempdir()).glob("octolgp-*.octolgp")) == spills
+
+
+def test_version_1_leaf_records_still_read() -> None:
+    """A leaf record from before the lattice engine (no counts) decodes as before."""
+    import struct
+
+    exact = dataclasses.replace(CONFIG, online=dataclasses.replace(CONFIG.online, engine="exact"))
+    m = OnlineMap(exact)
+    m.insert_scans(_scans()[:2])
+    for _, leaf in m.leaves():
+        blob = encode_leaf(leaf)
+        head = struct.Struct("<4sBBxxqqqqqq")
+        fields = list(head.unpack_from(blob))
+        fields[1] = 1  # version 1: the header, then the arrays, no counts block
+        old = head.pack(*fields) + blob[head.size + 8 :]
+        back = decode_leaf(old)
+        assert back.counts.shape == (2, 0)
+        assert encode_leaf(back) == blob
+
+
+def test_a_map_file_from_before_the_lattice_engine_reopens_exact(tmp_path: Path) -> None:
+    """Files whose config names no engine hold exact-engine leaves and reopen as such."""
+    import json
+
+    exact = dataclasses.replace(CONFIG, online=dataclasses.replace(CONFIG.online, engine="exact"))
+    path = tmp_path / "old.octolgp"
+    with OnlineMap(exact, path=path) as m:
+        m.insert_scans(_scans()[:3])
+        before = _values(m)
+    con = sqlite3.connect(path)
+    stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
+    del stored["online"]["engine"]
+    con.execute("UPDATE meta SET value = ? WHERE key = 'config'", (json.dumps(stored),))
+    con.commit()
+    con.close()
+    with OnlineMap.open(path) as m:
+        assert m.config.online.engine == "exact"
+        assert _values(m) == before
+        m.insert_scan(_scans()[3])  # and it goes on mapping with its engine
+        assert all(leaf.counts.size == 0 for _, leaf in m.leaves())

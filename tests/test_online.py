@@ -363,6 +363,14 @@ def test_bad_queries_raise(points: object, field: str) -> None:
         ({"prune_free": 0.6}, "prune_free"),
         ({"n_jobs": 0}, "n_jobs"),
         ({"prune": 1}, "prune"),
+        ({"engine": "fast"}, "engine"),
+        ({"evidence_cap": 0}, "evidence_cap"),
+        ({"evidence_cap": 256}, "evidence_cap"),
+        ({"free_weight": 0.0}, "free_weight"),
+        ({"free_weight": float("nan")}, "free_weight"),
+        ({"inducing_spacing": -1.0}, "inducing_spacing"),
+        ({"max_inducing_per_axis": 1}, "max_inducing_per_axis"),
+        ({"max_inducing_per_axis": 17}, "max_inducing_per_axis"),
     ],
 )
 def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:

@@ -50,6 +50,10 @@ IntArray = NDArray[np.int64]
 JITTER = 1e-8
 """Relative jitter on the lattice covariance ``K_uu`` (its Cholesky is taken once)."""
 
+MIN_NOISE = 1e-8
+"""Floor of ``σn² / σf²`` in the lattice engine: with a vanishing noise variance the
+precision ``1 / σn²`` would overflow ``A``; the floor keeps it finite."""
+
 
 @dataclass(frozen=True, slots=True)
 class LatticeGeometry:
@@ -106,7 +110,7 @@ class LatticeGeometry:
         return _lattice(steps, self.dim)
 
 
-def _lattice(steps: FloatArray, dim: int) -> FloatArray:
+def _lattice(steps: np.ndarray, dim: int) -> FloatArray:
     """All points of ``steps`` per axis, (len**dim, dim), x fastest."""
     grids = np.meshgrid(*([steps] * dim), indexing="ij")
     return np.stack([g.ravel(order="F") for g in grids], axis=1)
@@ -147,7 +151,7 @@ class LatticeTables:
     residual : ndarray of shape (V,)
         ``k(x, x) − |ψ(x)|²``: prior variance the lattice cannot explain, >= 0.
     noise_variance : float
-        ``σn²``.
+        ``σn²`` (at least ``MIN_NOISE σf²``).
     """
 
     geometry: LatticeGeometry
@@ -197,7 +201,7 @@ def lattice_tables(geometry: LatticeGeometry, hp: Hyperparameters) -> LatticeTab
         _frozen(phi[:, iu] * phi[:, ju]),
         _frozen(psi.T),
         _frozen(residual),
-        hp.noise_variance,
+        max(hp.noise_variance, MIN_NOISE * hp.signal_variance),
     )
 
 
@@ -234,9 +238,7 @@ def lattice_posterior(
     var = np.empty((n_leaves, n_vox))
     for lo in range(0, n_leaves, step):  # one chunk of leaves per iteration
         hi = min(lo + step, n_leaves)
-        mean[lo:hi], var[lo:hi] = _posterior_chunk(
-            tables, hits[lo:hi], frees[lo:hi], free_weight
-        )
+        mean[lo:hi], var[lo:hi] = _posterior_chunk(tables, hits[lo:hi], frees[lo:hi], free_weight)
     return mean, var
 
 
@@ -273,20 +275,24 @@ def dtc_reference(
     inducing: FloatArray,
     points: FloatArray,
     y: FloatArray,
+    weights: FloatArray,
     test: FloatArray,
     hp: Hyperparameters,
 ) -> tuple[FloatArray, FloatArray]:
     """The DTC posterior written out directly, for one leaf (the reference of the tests).
 
-    ``Σ = (K_uu + σn⁻² K_uf K_fu)⁻¹``, ``μ = σn⁻² K_*u Σ K_uf y``,
+    With ``Λ = diag(weights) / σn²`` (a point of weight ``w`` has noise ``σn² / w``):
+    ``Σ = (K_uu + K_uf Λ K_fu)⁻¹``, ``μ = K_*u Σ K_uf Λ y``,
     ``σ² = k_** − K_*u K_uu⁻¹ K_u* + K_*u Σ K_u*`` (R&W §8.3.3).
 
     Parameters
     ----------
     inducing : ndarray of shape (m, d)
     points : ndarray of shape (n, d)
-        Observation points (repeated for repeated observations).
+        Observation points.
     y : ndarray of shape (n,)
+    weights : ndarray of shape (n,)
+        Precision multiplier of each observation.
     test : ndarray of shape (t, d)
     hp : Hyperparameters
 
@@ -298,8 +304,9 @@ def dtc_reference(
     Kuu[np.diag_indices_from(Kuu)] += JITTER * hp.signal_variance
     Kuf = _kernel(inducing, points, hp)
     Ksu = _kernel(test, inducing, hp)
-    S = np.linalg.inv(Kuu + Kuf @ Kuf.T / hp.noise_variance)
-    mean = Ksu @ S @ Kuf @ y / hp.noise_variance
+    lam = weights / hp.noise_variance
+    S = np.linalg.inv(Kuu + (Kuf * lam) @ Kuf.T)
+    mean = Ksu @ S @ Kuf @ (lam * y)
     q = np.einsum("ij,ji->i", Ksu, np.linalg.solve(Kuu, Ksu.T))
     var = hp.signal_variance - q + np.einsum("ij,ji->i", Ksu, S @ Ksu.T)
     return mean, var

@@ -189,7 +189,7 @@ def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
     """The lattice of a map's leaves: leaf and halo in voxels, lattice points per axis."""
     grid = LeafGrid.from_config(config)
     oc = config.online
-    k_max = oc.max_inducing_per_axis or (8 if config.dim == 2 else 4)
+    k_max = oc.max_inducing_per_axis or (16 if config.dim == 2 else 4)
     box = grid.side + 2 * grid.halo_voxels
     k = inducing_per_axis(box * grid.resolution, hp.length_scale, oc.inducing_spacing, k_max)
     return LatticeGeometry(config.dim, grid.side, grid.halo_voxels, k, grid.resolution)
@@ -235,7 +235,9 @@ def fit_lattice_leaves(
     if pool is None or runs < 2:
         results = [lattice_posterior(tables, h, f, oc.free_weight) for h, f in parts]
     else:
-        results = list(pool.map(lambda p: lattice_posterior(tables, *p, oc.free_weight), parts))
+        results = list(
+            pool.map(lambda p: lattice_posterior(tables, p[0], p[1], oc.free_weight), parts)
+        )
     mean = np.concatenate([r[0] for r in results])
     var = np.concatenate([r[1] for r in results])
     prob = latent_occupancy(mean, var, hp)

@@ -60,10 +60,9 @@ class LeafGrid:
     def from_config(cls, config: MapConfig) -> LeafGrid:
         """The grid of a map config (``config.online``)."""
         oc = config.online
-        depth = oc.leaf_depth
-        if depth is None:
-            depth = config.tree_depth - (4 if config.dim == 2 else 3)
-        return cls(config.dim, float(config.resolution), config.tree_depth, depth, oc.halo)
+        return cls(
+            config.dim, float(config.resolution), config.tree_depth, config.leaf_depth, oc.halo
+        )
 
     @property
     def shift(self) -> int:

@@ -52,11 +52,18 @@ _HEADER = struct.Struct("<4sBBxxqqqqqq")  # magic, version, dim, h, s, v, pruned
 _LEAF_MAGIC = b"OLGL"
 
 
+_COUNTS = struct.Struct("<q")  # record version 2: halo voxels of the count arrays
+
+
 def encode_leaf(leaf: Leaf) -> bytes:
-    """A leaf as bytes: a 56-byte header, then its arrays back to back (little-endian)."""
+    """A leaf as bytes: a 56-byte header, then its arrays back to back (little-endian).
+
+    Record version 2 adds the lattice engine's counts (8 bytes: their length ``H``,
+    then ``2 H`` bytes) after the header; version 1 records (no counts) still read.
+    """
     d = int(leaf.index.size)
     h, s, v = leaf.hits.shape[0], leaf.free_start.shape[0], leaf.prob.size
-    head = _HEADER.pack(_LEAF_MAGIC, 1, d, h, s, v, int(leaf.pruned), leaf.refits, leaf.touched)
+    head = _HEADER.pack(_LEAF_MAGIC, 2, d, h, s, v, int(leaf.pruned), leaf.refits, leaf.touched)
     parts = [
         leaf.index.astype("<i8"),
         leaf.hits.astype("<f8"),
@@ -67,8 +74,10 @@ def encode_leaf(leaf: Leaf) -> bytes:
         leaf.mean.astype("<f4"),
         leaf.var.astype("<f4"),
         leaf.prob.astype("<f4"),
+        np.ascontiguousarray(leaf.counts, dtype=np.uint8),
     ]
-    return head + b"".join(p.tobytes() for p in parts)
+    counts = _COUNTS.pack(leaf.counts.shape[1])
+    return head + counts + b"".join(p.tobytes() for p in parts)
 
 
 def decode_leaf(blob: bytes) -> Leaf:
@@ -76,19 +85,28 @@ def decode_leaf(blob: bytes) -> Leaf:
     if len(blob) < _HEADER.size:
         raise OctolgpError("leaf record is truncated")
     magic, version, d, h, s, v, pruned, refits, touched = _HEADER.unpack_from(blob)
-    if magic != _LEAF_MAGIC or version != 1 or d not in (2, 3) or min(h, s, v) < 0:
+    if magic != _LEAF_MAGIC or version not in (1, 2) or d not in (2, 3) or min(h, s, v) < 0:
         raise OctolgpError("leaf record has a bad header")
+    at = _HEADER.size
+    n_counts = 0
+    if version == 2:
+        if len(blob) < at + _COUNTS.size:
+            raise OctolgpError("leaf record is truncated")
+        (n_counts,) = _COUNTS.unpack_from(blob, at)
+        at += _COUNTS.size
+        if n_counts < 0:
+            raise OctolgpError("leaf record has a bad header")
     sizes = [(d, "<i8"), (h * d, "<f8"), (h, "<i8"), (s * d, "<f8"), (s * d, "<f8")]
-    sizes += [(s, "<i8"), (v, "<f4"), (v, "<f4"), (v, "<f4")]
-    need = _HEADER.size + sum(n * np.dtype(t).itemsize for n, t in sizes)
+    sizes += [(s, "<i8"), (v, "<f4"), (v, "<f4"), (v, "<f4"), (2 * n_counts, "u1")]
+    need = at + sum(n * np.dtype(t).itemsize for n, t in sizes)
     if len(blob) != need:
         raise OctolgpError(f"leaf record has {len(blob)} bytes, expected {need}")
-    out, at = [], _HEADER.size
-    for n, t in sizes:  # nine arrays
+    out = []
+    for n, t in sizes:  # ten arrays
         arr = np.frombuffer(blob, dtype=t, count=n, offset=at)
         out.append(arr.astype(np.dtype(t).newbyteorder("=")))
         at += n * arr.itemsize
-    index, hits, hit_keys, fs, fe, free_keys, mean, var, prob = out
+    index, hits, hit_keys, fs, fe, free_keys, mean, var, prob, counts = out
     return Leaf(
         index=index,
         hits=hits.reshape(h, d),
@@ -96,6 +114,7 @@ def decode_leaf(blob: bytes) -> Leaf:
         free_start=fs.reshape(s, d),
         free_end=fe.reshape(s, d),
         free_keys=free_keys,
+        counts=counts.reshape(2, n_counts),
         mean=mean,
         var=var,
         prob=prob,
@@ -257,7 +276,10 @@ class MapFile:
                 raise OctolgpError(
                     f"map file {str(p)!r} has version {meta.get('version')}, expected {VERSION}"
                 )
-            config = MapConfig.from_dict(json.loads(meta["config"]))
+            stored = json.loads(meta["config"])
+            # files from before the lattice engine hold the exact engine's leaves
+            stored.setdefault("online", {}).setdefault("engine", "exact")
+            config = MapConfig.from_dict(stored)
             hp_data = json.loads(meta["hyperparameters"])
             hp = None if hp_data is None else Hyperparameters(**hp_data)
             n_scans = int(meta["n_scans"])

@@ -1,0 +1,155 @@
+"""The lattice leaf engine: its batched fast path against the DTC written out and the exact GP."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from octolgp import Hyperparameters
+from octolgp.gp.kernels import matern32
+from octolgp.gp.lattice import (
+    LatticeGeometry,
+    dtc_reference,
+    inducing_per_axis,
+    lattice_posterior,
+    lattice_tables,
+)
+
+HP = Hyperparameters(length_scale=0.5, signal_variance=1.7, noise_variance=0.05, alpha=3.0)
+
+
+def _counts(rng: np.random.Generator, n: int, H: int) -> tuple[np.ndarray, np.ndarray]:
+    hits = (rng.random((n, H)) < 0.08).astype(np.uint8) * rng.integers(1, 3, (n, H), dtype=np.uint8)
+    frees = (rng.random((n, H)) < 0.4).astype(np.uint8) * rng.integers(1, 4, (n, H), dtype=np.uint8)
+    return hits, frees
+
+
+def _as_points(
+    g: LatticeGeometry, hits: np.ndarray, frees: np.ndarray, free_weight: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One weighted observation per observed (voxel, class): the counts as point data."""
+    X = g.halo_centres()
+    h, f = hits > 0, frees > 0
+    points = np.concatenate([X[h], X[f]])
+    y = np.r_[np.ones(h.sum()), -np.ones(f.sum())]
+    w = np.r_[hits[h].astype(float), free_weight * frees[f]]
+    return points, y, w
+
+
+@pytest.mark.parametrize(
+    ("dim", "side", "halo", "k"), [(2, 16, 4, 6), (2, 8, 2, 5), (3, 8, 2, 3), (3, 4, 1, 4)]
+)
+@pytest.mark.parametrize("free_weight", [1.0, 0.1])
+def test_the_batched_posterior_is_the_dtc_written_out(
+    dim: int, side: int, halo: int, k: int, free_weight: float
+) -> None:
+    g = LatticeGeometry(dim, side, halo, k, 0.1)
+    tables = lattice_tables(g, HP)
+    rng = np.random.default_rng(dim * 100 + k)
+    hits, frees = _counts(rng, 5, g.n_halo)
+    hits[0] = frees[0] = 0  # a leaf with nothing observed
+    mean, var = lattice_posterior(tables, hits, frees, free_weight)
+    for j in range(hits.shape[0]):
+        pts, y, w = _as_points(g, hits[j], frees[j], free_weight)
+        ref_mean, ref_var = dtc_reference(g.inducing_points(), pts, y, w, g.leaf_centres(), HP)
+        # stated tolerance: 1e-9 (both are float64 solves of the same well-posed system)
+        np.testing.assert_allclose(mean[j], ref_mean, atol=1e-9)
+        np.testing.assert_allclose(var[j], ref_var, atol=1e-9)
+    # an unobserved leaf is the prior
+    np.testing.assert_allclose(mean[0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(var[0], HP.signal_variance, rtol=1e-9)
+
+
+def test_small_chunks_give_the_same_posterior(monkeypatch: pytest.MonkeyPatch) -> None:
+    from octolgp.gp import lattice
+
+    g = LatticeGeometry(2, 8, 2, 4, 0.1)
+    tables = lattice_tables(g, HP)
+    hits, frees = _counts(np.random.default_rng(1), 40, g.n_halo)
+    whole = lattice_posterior(tables, hits, frees)
+    monkeypatch.setattr(lattice, "CHUNK_BYTES", 1)  # one leaf per chunk
+    chunked = lattice_posterior(tables, hits, frees)
+    # BLAS may sum a product's rows in another order when a chunk holds other leaves:
+    # a leaf's posterior depends on its batch only at rounding level
+    np.testing.assert_allclose(whole[0], chunked[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(whole[1], chunked[1], rtol=0, atol=1e-12)
+
+
+def _exact_gp(
+    points: np.ndarray, y: np.ndarray, w: np.ndarray, test: np.ndarray, hp: Hyperparameters
+) -> tuple[np.ndarray, np.ndarray]:
+    """The exact GP with noise σn²/w per point, by dense linear algebra."""
+
+    def k(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        r = np.sqrt(((a[:, None] - b[None]) ** 2).sum(-1))
+        return matern32(r, hp.length_scale, hp.signal_variance)
+
+    K = k(points, points) + np.diag(hp.noise_variance / w)
+    Ks = k(test, points)
+    mean = Ks @ np.linalg.solve(K, y)
+    var = hp.signal_variance - np.einsum("ij,ji->i", Ks, np.linalg.solve(K, Ks.T))
+    return mean, var
+
+
+def test_the_lattice_converges_to_the_exact_gp_on_the_observations() -> None:
+    """Inducing points at every halo voxel centre make the DTC exact; coarser ones approach it."""
+    g0 = LatticeGeometry(2, 8, 2, 12, 0.1)  # box 12: a 12 x 12 lattice at the voxel centres
+    rng = np.random.default_rng(3)
+    hits, frees = _counts(rng, 1, g0.n_halo)
+    pts, y, w = _as_points(g0, hits[0], frees[0], 0.3)
+    exact_mean, exact_var = _exact_gp(pts, y, w, g0.leaf_centres(), HP)
+    errors = []
+    for k in (3, 6, 12):
+        g = LatticeGeometry(2, 8, 2, k, 0.1)
+        mean, var = lattice_posterior(lattice_tables(g, HP), hits, frees, 0.3)
+        errors.append(max(np.abs(mean[0] - exact_mean).max(), np.abs(var[0] - exact_var).max()))
+    assert errors[0] > errors[1] > errors[2]
+    assert errors[2] < 1e-5  # lattice on the voxel centres: exact up to the 1e-8 jitter
+
+
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    ls=st.floats(0.05, 3.0),
+    sf2=st.floats(0.1, 10.0),
+    sn2=st.floats(1e-6, 1.0),
+)
+def test_the_posterior_variance_lies_between_zero_and_the_prior(
+    seed: int, ls: float, sf2: float, sn2: float
+) -> None:
+    hp = Hyperparameters(length_scale=ls, signal_variance=sf2, noise_variance=sn2)
+    g = LatticeGeometry(2, 4, 1, 4, 0.1)
+    hits, frees = _counts(np.random.default_rng(seed), 3, g.n_halo)
+    mean, var = lattice_posterior(lattice_tables(g, hp), hits, frees)
+    assert np.isfinite(mean).all()
+    assert (var >= -1e-9 * sf2).all()
+    assert (var <= sf2 * (1 + 1e-9)).all()
+
+
+def test_a_vanishing_noise_variance_stays_finite() -> None:
+    hp = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)
+    g = LatticeGeometry(2, 8, 2, 4, 0.1)
+    hits, frees = _counts(np.random.default_rng(5), 2, g.n_halo)
+    mean, var = lattice_posterior(lattice_tables(g, hp), hits, frees)
+    assert np.isfinite(mean).all()
+    assert np.isfinite(var).all()
+
+
+def test_the_lattice_density_follows_the_length_scale() -> None:
+    assert inducing_per_axis(2.4, 0.6, 0.5, 16) == 8  # 0.3 m apart
+    assert inducing_per_axis(2.4, 0.6, 0.5, 6) == 6  # capped
+    assert inducing_per_axis(2.4, 50.0, 0.5, 8) == 2  # at least two
+
+
+def test_the_geometry_lays_the_halo_box_out_x_fastest() -> None:
+    g = LatticeGeometry(3, 4, 1, 2, 0.5)
+    X = g.halo_centres()
+    assert X.shape == (216, 3)
+    np.testing.assert_allclose(X[0], [-0.25, -0.25, -0.25])
+    np.testing.assert_allclose(X[1], [0.25, -0.25, -0.25])  # x varies fastest
+    np.testing.assert_allclose(X[6], [-0.25, 0.25, -0.25])
+    np.testing.assert_allclose(g.leaf_centres()[0], [0.25, 0.25, 0.25])
+    U = g.inducing_points()
+    np.testing.assert_allclose(U.min(0), -0.5 + 1.5 / 2)
