@@ -243,12 +243,14 @@ class OnlineConfig:
         A leaf with more training items than this is split into k-means clusters
         under ``partition.max_cluster_size`` (the paper's iterative k-means);
         below it the leaf is one local GP. Default 400.
-    learn_scans : int
+    learn_scans : int or None
         With ``MapConfig.hyperparameters=None`` the first this many scans are
         buffered, the hyperparameters are learnt on them and then held fixed.
-        Default 40: on the Intel and FR079 logs, learning on the first 10 scans (the
-        robot still in its first room) gave held-out AUC 0.965 / 0.907, on the first
-        40 0.972 / 0.941 (``BENCHMARKS.md``).
+        ``None`` (default): 40 in 2D (on the Intel and FR079 logs, learning on the
+        first 10 scans, the robot still in its first room, gave held-out AUC 0.965 /
+        0.907, on the first 40 0.972 / 0.941; ``BENCHMARKS.md``) and 5 in 3D, where
+        one lidar scan holds a hundred times the beams of a 2D scan
+        (:attr:`MapConfig.learn_scans`).
     prune : bool
         Collapse a leaf whose voxels are all confidently free or all confidently
         occupied to one value (OctoMap-style pruning). Default True.
@@ -302,7 +304,7 @@ class OnlineConfig:
     leaf_depth: int | None = None
     halo: float = 0.2
     max_leaf_items: int = 400
-    learn_scans: int = 40
+    learn_scans: int | None = None
     prune: bool = True
     prune_free: float = 0.1192
     prune_occupied: float = 0.971
@@ -323,7 +325,8 @@ class OnlineConfig:
         if not ok or not math.isfinite(self.halo) or not 0 <= self.halo < 0.5:
             raise OctolgpError(f"OnlineConfig.halo must be a number in [0, 0.5), got {self.halo!r}")
         _integer("OnlineConfig", "max_leaf_items", self.max_leaf_items, 2)
-        _integer("OnlineConfig", "learn_scans", self.learn_scans, 1)
+        if self.learn_scans is not None:
+            _integer("OnlineConfig", "learn_scans", self.learn_scans, 1)
         if not isinstance(self.prune, bool):
             raise OctolgpError(f"OnlineConfig.prune must be a bool, got {self.prune!r}")
         _fraction("OnlineConfig", "prune_free", self.prune_free, open_low=True)
@@ -419,6 +422,13 @@ class MapConfig:
         if self.dim == 2:
             return self.tree_depth - 4
         return self.tree_depth - (2 if self.online.engine == "lattice" else 3)
+
+    @property
+    def learn_scans(self) -> int:
+        """Scans buffered to learn hyperparameters on (``online.learn_scans`` or 40 / 5)."""
+        if self.online.learn_scans is not None:
+            return self.online.learn_scans
+        return 40 if self.dim == 2 else 5
 
     @property
     def free_margin(self) -> float:

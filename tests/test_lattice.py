@@ -138,9 +138,10 @@ def test_a_vanishing_noise_variance_stays_finite() -> None:
 
 
 def test_the_lattice_density_follows_the_length_scale() -> None:
-    assert inducing_per_axis(2.4, 0.6, 0.5, 16) == 8  # 0.3 m apart
-    assert inducing_per_axis(2.4, 0.6, 0.5, 6) == 6  # capped
-    assert inducing_per_axis(2.4, 50.0, 0.5, 8) == 2  # at least two
+    assert inducing_per_axis(2.4, 0.6, 0.5, 2, 16) == 8  # 0.3 m apart
+    assert inducing_per_axis(2.4, 0.6, 0.5, 2, 6) == 6  # capped
+    assert inducing_per_axis(2.4, 50.0, 0.5, 2, 8) == 2  # at least two
+    assert inducing_per_axis(2.4, 50.0, 0.5, 8, 16) == 8  # at least k_min
 
 
 def test_the_geometry_lays_the_halo_box_out_x_fastest() -> None:

@@ -83,7 +83,7 @@ def test_reads_saves_and_exports_never_change_later_inserts(
             m.save(tmp_path / f"m{k}.octolgp")
             assert (m.hyperparameters, values(m), m.n_scans, m.buffered_scans) == before
             assert np.array_equal(m.occupancy(PROBE), p1)  # a read is repeatable
-            if k < CONFIG.online.learn_scans:
+            if k < CONFIG.learn_scans:
                 assert m.provisional
                 assert m.hyperparameters is None
                 assert len(m.store) == 0

@@ -27,16 +27,28 @@ def config(scans: list) -> MapConfig:
     return dataclasses.replace(cfg, hyperparameters=learn_hyperparameters(scans[:10], cfg))
 
 
+LATTICE_TOLERANCE = 1e-6
+"""The lattice engine fits many leaves per BLAS call, and a leaf fitted beside other
+leaves (another batch on another worker) may round differently: its float32 voxel
+values agree to a few float32 ulps. The exact engine fits each leaf alone: bit for bit."""
+
+
 def _assert_same_map(a: OnlineMap, b: OnlineMap) -> None:
     keys_a = [k for k, _ in a.leaves()]
     keys_b = [k for k, _ in b.leaves()]
     assert keys_a == keys_b
+    exact = a.config.online.engine == "exact"
     for k in keys_a:
         la, lb = a.store.get(k), b.store.get(k)
         assert la is not None
         assert lb is not None
+        assert np.array_equal(la.counts, lb.counts), k  # the evidence: bit for bit
         for name in ("mean", "var", "prob"):
-            assert np.array_equal(getattr(la, name), getattr(lb, name)), (k, name)
+            x, y = getattr(la, name), getattr(lb, name)
+            if exact:
+                assert np.array_equal(x, y), (k, name)
+            else:
+                np.testing.assert_allclose(x, y, rtol=0, atol=LATTICE_TOLERANCE, err_msg=name)
         assert la.pruned == lb.pruned
 
 

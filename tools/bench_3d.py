@@ -18,7 +18,7 @@ each label checked against the exact box geometry. AUC with unknown points at 0.
 unknown.
 
 Learning: with no ``--hp`` the map learns its hyperparameters once
-``OnlineConfig.learn_scans`` scans are buffered (default 40; ``--learn-scans``
+``MapConfig.learn_scans`` scans are buffered (default 5 in 3D; ``--learn-scans``
 changes it); until then inserts only buffer. That scan's insert (learning plus
 fitting every buffered scan) is reported on its own row, and if the run ends before
 it, ``flush()`` is called after the last insert and timed as its own row. Medians
@@ -487,7 +487,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
         type=int,
         default=None,
         metavar="K",
-        help="OnlineConfig.learn_scans (default: the config's, 40)",
+        help="OnlineConfig.learn_scans (default: the config's, 5 in 3D)",
     )
     parser.add_argument(
         "--set",

@@ -70,7 +70,7 @@ def build_tiled(
         World-frame scans of dimension ``config.dim``.
     config : MapConfig
         With ``hyperparameters=None`` they are learnt on the first
-        ``config.online.learn_scans`` scans, as the online map does.
+        ``config.learn_scans`` scans, as the online map does.
     path : str or Path, optional
         Map file to write (SQLite, as :class:`OnlineMap`); must not exist. ``None``
         keeps the map in memory.
@@ -107,7 +107,7 @@ def build_tiled(
     scan_list = check_scans(scans, config.dim)
     hp = config.hyperparameters
     if hp is None:
-        hp = learn_hyperparameters(scan_list[: config.online.learn_scans], config)
+        hp = learn_hyperparameters(scan_list[: config.learn_scans], config)
     fixed = dataclasses.replace(
         config,
         hyperparameters=hp,

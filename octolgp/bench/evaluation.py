@@ -241,7 +241,7 @@ def evaluate_log(
     config : MapConfig
         Map settings for every method (resolution, dimension). With
         ``hyperparameters=None`` they are learnt per split on the first
-        ``config.online.learn_scans`` training scans and shared by the GP methods.
+        ``config.learn_scans`` training scans and shared by the GP methods.
     seeds : int
         Number of random splits (seeds ``0 .. seeds-1``), ``>= 1``.
     fraction, run : float, int
@@ -314,7 +314,7 @@ def evaluate_log(
         if hp is None:
             if progress:
                 progress(f"{name}: learning hyperparameters")
-            hp = learn_hyperparameters(train[: config.online.learn_scans], config)
+            hp = learn_hyperparameters(train[: config.learn_scans], config)
         fixed = dataclasses.replace(config, hyperparameters=hp)
         builders = _builders(fixed, n_jobs, fast_online)
         report.splits.append(name)

@@ -83,7 +83,10 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
     p.add_argument("--jobs", type=_positive_int, default=1, help="threads refitting leaves")
     p.add_argument(
-        "--learn-scans", type=_positive_int, default=40, help="scans to learn hyperparameters on"
+        "--learn-scans",
+        type=_positive_int,
+        default=None,
+        help="scans to learn hyperparameters on (default 40 in 2D, 5 in 3D)",
     )
     p.add_argument("--limit", type=_positive_int, default=None, help="stop after N scans")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out")
@@ -211,7 +214,10 @@ def make_parser() -> argparse.ArgumentParser:
         "--workers", type=_positive_int, default=None, help="LocalCluster worker processes"
     )
     bld.add_argument(
-        "--learn-scans", type=_positive_int, default=40, help="scans to learn hyperparameters on"
+        "--learn-scans",
+        type=_positive_int,
+        default=None,
+        help="scans to learn hyperparameters on (default 40 in 2D, 5 in 3D)",
     )
     bld.add_argument("--downsample", type=_positive_float, default=None, metavar="VOXEL")
     bld.add_argument("--limit", type=_positive_int, default=None, help="use the first N scans")

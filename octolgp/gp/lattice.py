@@ -116,8 +116,13 @@ def _lattice(steps: np.ndarray, dim: int) -> FloatArray:
     return np.stack([g.ravel(order="F") for g in grids], axis=1)
 
 
-def inducing_per_axis(box_edge: float, length_scale: float, spacing: float, k_max: int) -> int:
+def inducing_per_axis(
+    box_edge: float, length_scale: float, spacing: float, k_min: int, k_max: int
+) -> int:
     """Lattice points per axis so that they are at most ``spacing × length_scale`` apart.
+
+    A long length scale does not make a posterior smooth when the noise is small (it
+    still interpolates its data), so the lattice never gets coarser than ``k_min``.
 
     Parameters
     ----------
@@ -127,11 +132,11 @@ def inducing_per_axis(box_edge: float, length_scale: float, spacing: float, k_ma
         Kernel length scale, metres.
     spacing : float
         Largest lattice spacing as a fraction of the length scale.
-    k_max : int
-        Upper bound (cost grows as ``k**(3 d)``).
+    k_min, k_max : int
+        Bounds (cost grows as ``k**(3 d)``).
     """
     k = math.ceil(box_edge / (spacing * length_scale) - 1e-9)
-    return int(min(max(k, 2), k_max))
+    return int(min(max(k, k_min, 2), k_max))
 
 
 @dataclass(frozen=True, slots=True)

@@ -191,7 +191,9 @@ def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
     oc = config.online
     k_max = oc.max_inducing_per_axis or (16 if config.dim == 2 else 4)
     box = grid.side + 2 * grid.halo_voxels
-    k = inducing_per_axis(box * grid.resolution, hp.length_scale, oc.inducing_spacing, k_max)
+    k_min = min(k_max, box // 3)  # at least one lattice point per 3 voxels
+    edge = box * grid.resolution
+    k = inducing_per_axis(edge, hp.length_scale, oc.inducing_spacing, k_min, k_max)
     return LatticeGeometry(config.dim, grid.side, grid.halo_voxels, k, grid.resolution)
 
 

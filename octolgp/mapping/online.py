@@ -28,7 +28,7 @@
    map file in one transaction, and reported to the sink.
 
 Hyperparameters are those of ``MapConfig.hyperparameters``. When it is ``None`` the
-first ``OnlineConfig.learn_scans`` scans are buffered, the hyperparameters are
+first ``MapConfig.learn_scans`` scans (40 in 2D, 5 in 3D) are buffered, the hyperparameters are
 learnt on them (:func:`octolgp.gp.learning.learn_hyperparameters`) and then held
 fixed. The map after k scans is a function of those k scans and the config only:
 queries, :meth:`~OnlineMap.save`, :meth:`~OnlineMap.export_octomap`,
@@ -286,7 +286,7 @@ class OnlineMap(MapReads):
             return self._step([scan], [(index, scan)], t0)
         self._buffer.append(scan)
         self._provisional = None
-        if len(self._buffer) >= self.config.online.learn_scans:
+        if len(self._buffer) >= self.config.learn_scans:
             update = self._learn_and_step([(index, scan)], t0)
             if update is not None:
                 return update
@@ -425,7 +425,7 @@ class OnlineMap(MapReads):
         if self.hyperparameters is None and fitter is None:  # learn on the first scans
             scan_list = self._buffer + new_scans
             t = time.perf_counter()
-            hp = learn_hyperparameters(scan_list[: self.config.online.learn_scans], self.config)
+            hp = learn_hyperparameters(scan_list[: self.config.learn_scans], self.config)
             stats["learning"] = time.perf_counter() - t
             logger.info("learnt hyperparameters on the first scans: %s", hp)
             self.hyperparameters, self._buffer, self._provisional = hp, [], None
