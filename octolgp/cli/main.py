@@ -81,7 +81,12 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
     """Options shared by the subcommands that map scans online."""
     p.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
     p.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
-    p.add_argument("--jobs", type=_positive_int, default=1, help="threads refitting leaves")
+    p.add_argument(
+        "--jobs",
+        type=_positive_int,
+        default=None,
+        help="threads refitting leaves (default: the cores available, at most 8)",
+    )
     p.add_argument(
         "--learn-scans",
         type=_positive_int,

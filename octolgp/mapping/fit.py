@@ -216,7 +216,7 @@ def fit_lattice_leaves(
 
     Each leaf's latent posterior at its voxel centres comes from
     :func:`octolgp.gp.lattice.lattice_posterior`, then PLSC and pruning as in
-    :func:`fit_leaf`. With ``pool`` the leaves are split into ``online.n_jobs`` runs.
+    :func:`fit_leaf`. With ``pool`` the leaves are split into ``config.n_jobs`` runs.
 
     Returns
     -------
@@ -231,7 +231,7 @@ def fit_lattice_leaves(
     n_halo = tables.phi.shape[0]
     if counts.shape[2] != n_halo:
         raise ValueError(f"lattice leaves hold {counts.shape[2]} voxels, expected {n_halo}")
-    runs = 1 if pool is None else min(len(leaves), config.online.n_jobs)
+    runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
     parts = [(counts[lo:hi, 0], counts[lo:hi, 1]) for lo, hi in itertools.pairwise(bounds)]
     if pool is None or runs < 2:

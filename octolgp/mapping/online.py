@@ -530,7 +530,7 @@ class OnlineMap(MapReads):
 
     def _threads(self, leaves: list[Leaf]) -> ThreadPoolExecutor | None:
         """The map's thread pool when ``n_jobs > 1`` and there is more than one leaf."""
-        n_jobs = self.config.online.n_jobs
+        n_jobs = self.config.n_jobs
         if n_jobs <= 1 or len(leaves) < 2:
             return None
         if self._pool is None:
