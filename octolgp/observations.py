@@ -49,11 +49,15 @@ class VoxelObservations:
         Scans with a return in the voxel.
     frees : ndarray of int64, shape (n,)
         Scans whose free segments cross the voxel and hold no return in it.
+    first_hit : ndarray of shape (n, d)
+        The first return in the voxel (scan order, then beam order), metres, world
+        frame; NaN where ``hits`` is 0.
     """
 
     keys: IntArray
     hits: IntArray
     frees: IntArray
+    first_hit: np.ndarray
 
     @property
     def n_voxels(self) -> int:
@@ -165,28 +169,40 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     origins, ends, max_range = stack_beams(scan_list)
     scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
     beams = split_beams(origins, ends, max_range, config.free_margin)
-    hit_codes = sorted_unique(
-        _scan_codes(pack_keys(_voxel_keys(ends[beams.is_hit], res, depth)), scan[beams.is_hit], dim)
-    )
+    hit_points = ends[beams.is_hit]
+    hit_packed = pack_keys(_voxel_keys(hit_points, res, depth))
+    hit_codes = sorted_unique(_scan_codes(hit_packed, scan[beams.is_hit], dim))
     seg = beams.has_seg
     free_codes = _free_codes(origins[seg], beams.free_end[seg], scan[seg], res, depth)
     free_codes = free_codes[~np.isin(free_codes, hit_codes, assume_unique=True)]
     mask = (1 << (KEY_BITS * dim)) - 1
     hit_vox, hit_n = _unique_counts(hit_codes & mask)
     free_vox, free_n = _unique_counts(free_codes & mask)
-    return _combine(hit_vox, hit_n, free_vox, free_n, dim)
+    # the first return per voxel: a stable sort keeps scan, then beam order
+    order = np.argsort(hit_packed, kind="stable")
+    first = order[np.r_[True, hit_packed[order][1:] != hit_packed[order][:-1]]]
+    first_points = hit_points[first] if hit_points.size else np.zeros((0, dim))
+    return _combine(hit_vox, hit_n, free_vox, free_n, first_points, dim)
 
 
 def _combine(
-    hit_vox: IntArray, hit_n: IntArray, free_vox: IntArray, free_n: IntArray, dim: int
+    hit_vox: IntArray,
+    hit_n: IntArray,
+    free_vox: IntArray,
+    free_n: IntArray,
+    hit_points: np.ndarray,
+    dim: int,
 ) -> VoxelObservations:
-    """Observations from sorted unique packed voxels with their hit and free counts."""
+    """Observations from sorted unique packed voxels with their counts and first returns."""
     packed = sorted_unique(np.concatenate([hit_vox, free_vox]))
     hits = np.zeros(packed.size, dtype=np.int64)
     frees = np.zeros(packed.size, dtype=np.int64)
-    hits[np.searchsorted(packed, hit_vox)] = hit_n
+    first_hit = np.full((packed.size, dim), np.nan)
+    at = np.searchsorted(packed, hit_vox)
+    hits[at] = hit_n
+    first_hit[at] = hit_points
     frees[np.searchsorted(packed, free_vox)] = free_n
-    return VoxelObservations(unpack_keys(packed, dim), hits, frees)
+    return VoxelObservations(unpack_keys(packed, dim), hits, frees, first_hit)
 
 
 def merge_observations(parts: list[VoxelObservations], dim: int) -> VoxelObservations:
@@ -194,7 +210,13 @@ def merge_observations(parts: list[VoxelObservations], dim: int) -> VoxelObserva
     packed = np.concatenate([pack_keys(p.keys) for p in parts]) if parts else np.zeros(0)
     hits = np.concatenate([p.hits for p in parts]) if parts else np.zeros(0, np.int64)
     frees = np.concatenate([p.frees for p in parts]) if parts else np.zeros(0, np.int64)
+    points = np.concatenate([p.first_hit for p in parts]) if parts else np.zeros((0, dim))
     uniq, inverse = np.unique(packed.astype(np.int64), return_inverse=True)
     h = np.bincount(inverse, weights=hits, minlength=uniq.size).astype(np.int64)
     f = np.bincount(inverse, weights=frees, minlength=uniq.size).astype(np.int64)
-    return VoxelObservations(unpack_keys(uniq, dim), h, f)
+    # the first part (in time order) with a return in the voxel gives its first return
+    has = np.flatnonzero(hits > 0)
+    first_hit = np.full((uniq.size, dim), np.nan)
+    _, pick = np.unique(inverse[has], return_index=True)
+    first_hit[inverse[has[pick]]] = points[has[pick]]
+    return VoxelObservations(unpack_keys(uniq, dim), h, f, first_hit)

@@ -154,3 +154,31 @@ def test_the_geometry_lays_the_halo_box_out_x_fastest() -> None:
     np.testing.assert_allclose(g.leaf_centres()[0], [0.25, 0.25, 0.25])
     U = g.inducing_points()
     np.testing.assert_allclose(U.min(0), -0.5 + 1.5 / 2)
+
+
+def test_returns_at_their_positions_are_the_dtc_written_out() -> None:
+    g = LatticeGeometry(2, 8, 2, 5, 0.1)
+    tables = lattice_tables(g, HP)
+    rng = np.random.default_rng(11)
+    hits, frees = _counts(rng, 3, g.n_halo)
+    points = []
+    for j in range(3):  # each occupied voxel's return somewhere inside the voxel
+        occupied = np.flatnonzero(hits[j])
+        jitter = rng.uniform(-0.05, 0.05, (occupied.size, 2))
+        points.append((g.halo_centres()[occupied] + jitter, hits[j, occupied].astype(float)))
+    mean, var = lattice_posterior(tables, hits, frees, 0.3, points)
+    X = g.halo_centres()
+    for j in range(3):
+        f = frees[j] > 0
+        pts = np.concatenate([points[j][0], X[f]])
+        y = np.r_[np.ones(points[j][0].shape[0]), -np.ones(f.sum())]
+        w = np.r_[points[j][1], 0.3 * frees[j][f]]
+        ref_mean, ref_var = dtc_reference(g.inducing_points(), pts, y, w, g.leaf_centres(), HP)
+        np.testing.assert_allclose(mean[j], ref_mean, atol=1e-9)
+        np.testing.assert_allclose(var[j], ref_var, atol=1e-9)
+    # returns at their voxel centres are the table's returns
+    centred = [(X[np.flatnonzero(hits[j])], p[1]) for j, p in enumerate(points)]
+    a = lattice_posterior(tables, hits, frees, 0.3, centred)
+    b = lattice_posterior(tables, hits, frees, 0.3)
+    np.testing.assert_allclose(a[0], b[0], atol=1e-9)
+    np.testing.assert_allclose(a[1], b[1], atol=1e-9)

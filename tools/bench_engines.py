@@ -9,6 +9,11 @@ both engines. Extra variants: ``--variant "online.free_weight=0.5"`` (settings
 ``SECTION.FIELD=VALUE`` separated by ``;``).
 
     .venv/bin/python tools/bench_engines.py data/intel_lab/intel-corrected.log.gz --seeds 3
+    .venv/bin/python tools/bench_engines.py --paper --seeds 5
+
+``--paper``: the paper's 2D simulation instead of a log (``simulate_paper2d(seed)``, 0.2 m,
+its exact cell labels as test points, hyperparameters learnt on all its scans as the
+paper's Table II does), one simulated data set per seed.
 """
 
 from __future__ import annotations
@@ -30,13 +35,17 @@ from octolgp.bench.evaluation import evaluate_log
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("log", type=Path)
+    parser.add_argument("log", type=Path, nargs="?")
+    parser.add_argument("--paper", action="store_true", help="the paper's 2D simulation")
     parser.add_argument("--seeds", type=int, default=3)
     parser.add_argument("--resolution", type=float, default=0.1)
     parser.add_argument("--variant", action="append", default=[])
+    parser.add_argument("--no-exact", action="store_true", help="skip the exact engine's row")
     args = parser.parse_args()
+    if args.paper:
+        return paper(args.seeds, args.variant, not args.no_exact)
     scans = list(load_scans(args.log))
-    variants = ["", "online.engine=exact", *args.variant]
+    variants = ["", *([] if args.no_exact else ["online.engine=exact"]), *args.variant]
     print(f"`{' '.join(['tools/bench_engines.py', *sys.argv[1:]])}`")
     cpu = platform.processor() or platform.machine()
     print(f"Machine: {cpu}, {os.cpu_count()} cores; {args.log.name}: {len(scans)} scans")
@@ -64,6 +73,37 @@ def main() -> int:
     print()
     for seed, hp in enumerate(hps):
         print(f"seed {seed}: {hp}")
+    return 0
+
+
+def paper(seeds: int, extra: list[str], exact: bool = True) -> int:
+    """AUC of each engine on ``seeds`` simulated data sets of the paper's 2D scene."""
+    from octolgp import OnlineMap, learn_hyperparameters
+    from octolgp.bench.heldout import auc
+    from octolgp.bench.paper2d import paper2d_config
+    from octolgp.sim.scenes import simulate_paper2d
+
+    print(f"`{' '.join(['tools/bench_engines.py', *sys.argv[1:]])}`")
+    print()
+    print("| engine | AUC mean ± std | worst seed | per seed |")
+    print("|---|---|---|---|")
+    data = [simulate_paper2d(seed=s) for s in range(seeds)]
+    base = paper2d_config()
+    hps = [learn_hyperparameters(d.scans, base) for d in data]
+    for variant in ["", *(["online.engine=exact"] if exact else []), *extra]:
+        aucs = []
+        for d, hp in zip(data, hps, strict=True):
+            config = config_of(variant)
+            config = dataclasses.replace(base, online=config.online, hyperparameters=hp)
+            m = OnlineMap(config)
+            m.insert_batch(d.scans)
+            aucs.append(auc(d.truth_labels, m.occupancy(d.truth_points)))
+        a = np.array(aucs)
+        print(
+            f"| {variant or 'lattice (default)'} | {a.mean():.4f} ± {a.std():.4f} | "
+            f"{a.min():.4f} | {', '.join(f'{x:.4f}' for x in a)} |",
+            flush=True,
+        )
     return 0
 
 

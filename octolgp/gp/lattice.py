@@ -157,6 +157,12 @@ class LatticeTables:
         ``k(x, x) − |ψ(x)|²``: prior variance the lattice cannot explain, >= 0.
     noise_variance : float
         ``σn²`` (at least ``MIN_NOISE σf²``).
+    inducing : ndarray of shape (m, d)
+        The lattice, relative to the leaf's lower corner, metres.
+    chol : ndarray of shape (m, m)
+        Lower Cholesky factor of ``K_uu`` (with its jitter).
+    hp : Hyperparameters
+        The kernel of the tables (for the features of returns at their positions).
     """
 
     geometry: LatticeGeometry
@@ -165,9 +171,19 @@ class LatticeTables:
     psi_t: FloatArray
     residual: FloatArray
     noise_variance: float
+    inducing: FloatArray
+    chol: FloatArray
+    hp: Hyperparameters
+
+    def features(self, points: FloatArray) -> FloatArray:
+        """Whitened features ``L⁻¹ k_u(x)`` of points relative to a leaf's corner, (n, m)."""
+        out: FloatArray = solve_triangular(
+            self.chol, _kernel(self.inducing, points, self.hp), lower=True
+        ).T
+        return out
 
 
-def _frozen(a: FloatArray) -> FloatArray:
+def _frozen(a: np.ndarray) -> FloatArray:
     out = np.ascontiguousarray(a, dtype=np.float64)
     out.setflags(write=False)
     return out
@@ -207,6 +223,9 @@ def lattice_tables(geometry: LatticeGeometry, hp: Hyperparameters) -> LatticeTab
         _frozen(psi.T),
         _frozen(residual),
         max(hp.noise_variance, MIN_NOISE * hp.signal_variance),
+        _frozen(U),
+        _frozen(L),
+        hp,
     )
 
 
@@ -215,11 +234,16 @@ CHUNK_BYTES = 16 << 20
 (bounded chunks reuse freed memory instead of faulting in fresh pages)."""
 
 
+HitPoints = list[tuple[FloatArray, FloatArray]]
+"""Per leaf, its returns' positions relative to its lower corner (h, d) and weights (h,)."""
+
+
 def lattice_posterior(
     tables: LatticeTables,
     hits: NDArray[np.integer],
     frees: NDArray[np.integer],
     free_weight: float = 1.0,
+    hit_points: HitPoints | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Latent posterior at the voxel centres of many leaves at once.
 
@@ -229,6 +253,12 @@ def lattice_posterior(
     hits, frees : ndarray of int, shape (L, H)
         Per leaf and halo-box voxel (x fastest), how often the voxel was observed
         with a return and free.
+    free_weight : float
+        Precision multiplier of a free observation.
+    hit_points : list of (ndarray, ndarray), optional
+        Per leaf, the returns at their measured positions (relative to the leaf's
+        lower corner) with their weights; then ``hits`` is not used. By default each
+        return sits at its voxel's centre.
 
     Returns
     -------
@@ -243,7 +273,13 @@ def lattice_posterior(
     var = np.empty((n_leaves, n_vox))
     for lo in range(0, n_leaves, step):  # one chunk of leaves per iteration
         hi = min(lo + step, n_leaves)
-        mean[lo:hi], var[lo:hi] = _posterior_chunk(tables, hits[lo:hi], frees[lo:hi], free_weight)
+        mean[lo:hi], var[lo:hi] = _posterior_chunk(
+            tables,
+            hits[lo:hi],
+            frees[lo:hi],
+            free_weight,
+            None if hit_points is None else hit_points[lo:hi],
+        )
     return mean, var
 
 
@@ -252,12 +288,13 @@ def _posterior_chunk(
     hits: NDArray[np.integer],
     frees: NDArray[np.integer],
     free_weight: float,
+    hit_points: HitPoints | None,
 ) -> tuple[FloatArray, FloatArray]:
     """:func:`lattice_posterior` of one chunk of leaves: a few large matrix products."""
     n = hits.shape[0]
     m, n_vox = tables.psi_t.shape
     prec = 1.0 / tables.noise_variance
-    h = hits.astype(np.float64)
+    h = hits.astype(np.float64) if hit_points is None else np.zeros(hits.shape)
     f = frees * free_weight
     upper = ((h + f) * prec) @ tables.pairs  # (n, m (m+1)/2): upper triangles of Φᵀ W Φ
     iu, ju = np.triu_indices(m)
@@ -266,6 +303,8 @@ def _posterior_chunk(
     A[:, ju, iu] = upper
     A[:, np.arange(m), np.arange(m)] += 1.0
     b = ((h - f) * prec) @ tables.phi  # (n, m)
+    if hit_points is not None:
+        _add_points(A, b, tables, hit_points, prec)
     Ainv = np.linalg.inv(A)  # A >= I, so well conditioned
     alpha = np.matmul(Ainv, b[:, :, None])[:, :, 0]
     mean = alpha @ tables.psi_t
@@ -274,6 +313,24 @@ def _posterior_chunk(
     T *= tables.psi_t
     var = tables.residual + T.sum(1)
     return mean, var
+
+
+def _add_points(
+    A: FloatArray, b: FloatArray, tables: LatticeTables, points: HitPoints, prec: float
+) -> None:
+    """Add returns at their positions to the leaves' ``A`` and ``b`` (in place)."""
+    counts = np.array([p.shape[0] for p, _ in points])
+    if counts.sum() == 0:
+        return
+    X = np.concatenate([p for p, _ in points])
+    w = np.concatenate([wt for _, wt in points]) * prec
+    F = tables.features(X)  # (total, m)
+    leaf = np.repeat(np.arange(len(points)), counts)
+    slot = np.arange(leaf.size) - np.repeat(np.cumsum(counts) - counts, counts)
+    G = np.zeros((len(points), int(counts.max()), F.shape[1]))
+    G[leaf, slot] = F * np.sqrt(w)[:, None]
+    A += np.matmul(G.transpose(0, 2, 1), G)
+    np.add.at(b, leaf, F * w[:, None])
 
 
 def dtc_reference(

@@ -212,12 +212,23 @@ def gather_observations(
     new[inverse, 0, flat] = after_h
     new[inverse, 1, flat] = after_f
     moved = (after_h != before_h) | (after_f != before_f)
+    # a leaf keeps the first return of each voxel it has seen occupied: the pairs whose
+    # voxel the leaf sees occupied for the first time bring their position
+    with_hit = np.flatnonzero((before_h == 0) & (after_h > 0))
+    with_hit = with_hit[np.argsort(inverse[with_hit], kind="stable")]
+    hit_bounds = np.searchsorted(inverse[with_hit], np.arange(touched.size + 1))
+    packed_voxels = pack_keys(keys)
     changed: list[tuple[int, Leaf]] = []
     for j in np.unique(inverse[moved]).tolist():  # one iteration per changed leaf
         leaf = current[j]
         if leaf is None:
             leaf = Leaf.empty(leaf_index[first[j]])
-        changed.append((int(touched[j]), dataclasses.replace(leaf, counts=new[j].copy())))
+        leaf = dataclasses.replace(leaf, counts=new[j].copy())
+        pairs = voxel[with_hit[hit_bounds[j] : hit_bounds[j + 1]]]
+        if pairs.size:
+            leaf.hits = np.concatenate([leaf.hits, obs.first_hit[pairs]])
+            leaf.hit_keys = np.concatenate([leaf.hit_keys, packed_voxels[pairs]])
+        changed.append((int(touched[j]), leaf))
     gained = int((after_h - before_h).sum() + (after_f - before_f).sum())
     return Evidence(changed, touched.tolist(), gained)
 

@@ -21,8 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
+from octolgp.geometry.keys import unpack_keys
 from octolgp.gp.clusters import cluster_tree, fit_clusters, predict_nearest
 from octolgp.gp.lattice import (
+    HitPoints,
     LatticeGeometry,
     LatticeTables,
     inducing_per_axis,
@@ -231,15 +233,17 @@ def fit_lattice_leaves(
     n_halo = tables.phi.shape[0]
     if counts.shape[2] != n_halo:
         raise ValueError(f"lattice leaves hold {counts.shape[2]} voxels, expected {n_halo}")
+    points = return_points(leaves, LeafGrid.from_config(config), tables)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    parts = [(counts[lo:hi, 0], counts[lo:hi, 1]) for lo, hi in itertools.pairwise(bounds)]
-    if pool is None or runs < 2:
-        results = [lattice_posterior(tables, h, f, oc.free_weight) for h, f in parts]
-    else:
-        results = list(
-            pool.map(lambda p: lattice_posterior(tables, p[0], p[1], oc.free_weight), parts)
-        )
+    parts = [
+        (counts[lo:hi, 0], counts[lo:hi, 1], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)
+    ]
+
+    def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
+        return lattice_posterior(tables, part[0], part[1], oc.free_weight, part[2])
+
+    results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
     mean = np.concatenate([r[0] for r in results])
     var = np.concatenate([r[1] for r in results])
     prob = latent_occupancy(mean, var, hp)
@@ -259,6 +263,38 @@ def fit_lattice_leaves(
             refits=leaf.refits + 1,
         )
         out.append(LeafFit(fitted, 0))
+    return out
+
+
+def return_points(leaves: list[Leaf], grid: LeafGrid, tables: LatticeTables) -> HitPoints:
+    """Each lattice leaf's returns at their measured positions, with their weights.
+
+    A voxel seen occupied contributes one point of weight ``counts[0, v]``: the first
+    return the leaf kept for it (``Leaf.hits``), or the voxel centre if it has none
+    (leaves written before positions were kept). Positions are relative to the leaf's
+    lower corner, metres.
+    """
+    box, halo, d = tables.geometry.box, grid.halo_voxels, grid.dim
+    n_kept = np.array([leaf.hit_keys.size for leaf in leaves])
+    n_occupied = np.array([np.count_nonzero(leaf.counts[0]) for leaf in leaves])
+    # every leaf made by gather_observations keeps one return per occupied voxel
+    out: HitPoints = []
+    if (n_kept == n_occupied).all():
+        index = np.stack([leaf.index for leaf in leaves])
+        owner = np.repeat(np.arange(len(leaves)), n_kept)
+        keys = np.concatenate([leaf.hit_keys for leaf in leaves])
+        local = unpack_keys(keys, d) - (index[owner] * grid.side - halo)
+        flat = local @ (box ** np.arange(d, dtype=np.int64))
+        counts = np.concatenate([leaf.counts[0] for leaf in leaves]).reshape(len(leaves), -1)
+        weights = counts[owner, flat].astype(np.float64)
+        lo, _ = grid.box(index)
+        pos = np.concatenate([leaf.hits for leaf in leaves]) - lo[owner]
+        cuts = np.cumsum(n_kept)[:-1]
+        return list(zip(np.split(pos, cuts), np.split(weights, cuts), strict=True))
+    centres = tables.geometry.halo_centres()
+    for leaf in leaves:  # leaves from files without positions: returns at voxel centres
+        occupied = np.flatnonzero(leaf.counts[0])
+        out.append((centres[occupied], leaf.counts[0, occupied].astype(np.float64)))
     return out
 
 
