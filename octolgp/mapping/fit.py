@@ -195,7 +195,7 @@ def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
     box = grid.side + 2 * grid.halo_voxels
     k_min = min(k_max, box // 3)  # at least one lattice point per 3 voxels
     edge = box * grid.resolution
-    k = inducing_per_axis(edge, hp.length_scale, oc.inducing_spacing, k_min, k_max)
+    k = inducing_per_axis(edge, hp.length_scale, config.inducing_spacing, k_min, k_max)
     return LatticeGeometry(config.dim, grid.side, grid.halo_voxels, k, grid.resolution)
 
 
