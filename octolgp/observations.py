@@ -180,8 +180,9 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     free_vox, free_n = _unique_counts(free_codes & mask)
     # the first return per voxel: a stable sort keeps scan, then beam order
     order = np.argsort(hit_packed, kind="stable")
-    first = order[np.r_[True, hit_packed[order][1:] != hit_packed[order][:-1]]]
-    first_points = hit_points[first] if hit_points.size else np.zeros((0, dim))
+    ordered = hit_packed[order]
+    first = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
+    first_points = hit_points[first]
     return _combine(hit_vox, hit_n, free_vox, free_n, first_points, dim)
 
 

@@ -225,9 +225,11 @@ def gather_observations(
             leaf = Leaf.empty(leaf_index[first[j]])
         leaf = dataclasses.replace(leaf, counts=new[j].copy())
         pairs = voxel[with_hit[hit_bounds[j] : hit_bounds[j + 1]]]
-        if pairs.size:
-            leaf.hits = np.concatenate([leaf.hits, obs.first_hit[pairs]])
-            leaf.hit_keys = np.concatenate([leaf.hit_keys, packed_voxels[pairs]])
+        if pairs.size:  # kept in voxel-key order, however the scans were grouped
+            hit_keys = np.concatenate([leaf.hit_keys, packed_voxels[pairs]])
+            order = np.argsort(hit_keys, kind="stable")
+            leaf.hits = np.concatenate([leaf.hits, obs.first_hit[pairs]])[order]
+            leaf.hit_keys = hit_keys[order]
         changed.append((int(touched[j]), leaf))
     gained = int((after_h - before_h).sum() + (after_f - before_f).sum())
     return Evidence(changed, touched.tolist(), gained)
