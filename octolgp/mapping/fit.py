@@ -191,7 +191,7 @@ def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
     """The lattice of a map's leaves: leaf and halo in voxels, lattice points per axis."""
     grid = LeafGrid.from_config(config)
     oc = config.online
-    k_max = oc.max_inducing_per_axis or (16 if config.dim == 2 else 4)
+    k_max = oc.max_inducing_per_axis or (12 if config.dim == 2 else 4)
     box = grid.side + 2 * grid.halo_voxels
     k_min = min(k_max, box // 3)  # at least one lattice point per 3 voxels
     edge = box * grid.resolution
