@@ -12,7 +12,6 @@ lookup function and never write it: the map applies the result later.
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import time
 from collections.abc import Callable, Iterator
@@ -223,7 +222,7 @@ def gather_observations(
         leaf = current[j]
         if leaf is None:
             leaf = Leaf.empty(leaf_index[first[j]])
-        leaf = dataclasses.replace(leaf, counts=new[j].copy())
+        leaf = leaf.evolve(counts=new[j].copy())
         pairs = voxel[with_hit[hit_bounds[j] : hit_bounds[j + 1]]]
         if pairs.size:  # kept in voxel-key order, however the scans were grouped
             hit_keys = np.concatenate([leaf.hit_keys, packed_voxels[pairs]])

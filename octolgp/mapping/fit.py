@@ -11,7 +11,6 @@ workers.
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import itertools
 from collections.abc import Callable, Iterator
@@ -157,8 +156,7 @@ def fit_leaf(
         at = int(np.argmax(prob) if prob.max() < oc.prune_free else np.argmin(prob))
         mean, var, prob = mean[at : at + 1], var[at : at + 1], prob[at : at + 1]
         pruned = True
-    fitted = dataclasses.replace(
-        leaf,
+    fitted = leaf.evolve(
         mean=mean.astype(np.float32),
         var=var.astype(np.float32),
         prob=prob.astype(np.float32),
@@ -254,8 +252,7 @@ def fit_lattice_leaves(
     out = []
     for j, leaf in enumerate(leaves):  # one iteration per leaf: build its record
         sl = slice(int(at[j]), int(at[j]) + 1) if pruned[j] else slice(None)
-        fitted = dataclasses.replace(
-            leaf,
+        fitted = leaf.evolve(
             mean=mean[j, sl].astype(np.float32),
             var=var[j, sl].astype(np.float32),
             prob=prob[j, sl].astype(np.float32),
