@@ -15,6 +15,7 @@ from octolgp.gp.lattice import (
     inducing_per_axis,
     lattice_posterior,
     lattice_tables,
+    spd_inverse,
 )
 
 HP = Hyperparameters(length_scale=0.5, signal_variance=1.7, noise_variance=0.05, alpha=3.0)
@@ -39,8 +40,9 @@ def _as_points(
 
 
 @pytest.mark.parametrize(
-    ("dim", "side", "halo", "k"), [(2, 16, 4, 6), (2, 8, 2, 5), (3, 8, 2, 3), (3, 4, 1, 4)]
-)
+    ("dim", "side", "halo", "k"),
+    [(2, 16, 4, 6), (2, 16, 4, 12), (2, 8, 2, 5), (3, 8, 2, 3), (3, 4, 1, 4)],
+)  # (2, 16, 4, 12): the 2D default's 144-point lattice, inverted through Cholesky
 @pytest.mark.parametrize("free_weight", [1.0, 0.1])
 def test_the_batched_posterior_is_the_dtc_written_out(
     dim: int, side: int, halo: int, k: int, free_weight: float
@@ -60,6 +62,25 @@ def test_the_batched_posterior_is_the_dtc_written_out(
     # an unobserved leaf is the prior
     np.testing.assert_allclose(mean[0], 0.0, atol=1e-12)
     np.testing.assert_allclose(var[0], HP.signal_variance, rtol=1e-9)
+
+
+@pytest.mark.parametrize("m", [5, 127, 128, 150])
+def test_the_spd_inverse_is_numpys_inverse(m: int) -> None:
+    X = np.random.default_rng(m).standard_normal((3, m, m + 7))
+    A = X @ X.transpose(0, 2, 1) + np.eye(m)
+    inverse = spd_inverse(A.copy())
+    # stated tolerance: 1e-12 relative (two float64 factorizations of a matrix >= I)
+    np.testing.assert_allclose(
+        inverse, np.linalg.inv(A), rtol=0, atol=1e-12 * np.abs(inverse).max()
+    )
+    np.testing.assert_allclose(inverse, inverse.transpose(0, 2, 1), rtol=0, atol=1e-12)
+
+
+def test_the_spd_inverse_refuses_an_indefinite_matrix() -> None:
+    A = np.tile(np.eye(130), (2, 1, 1))
+    A[1, 0, 0] = -1.0
+    with pytest.raises(np.linalg.LinAlgError, match="matrix 1"):
+        spd_inverse(A)
 
 
 def test_small_chunks_give_the_same_posterior(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_triangular
+from scipy.linalg.lapack import dpotrf, dpotri
 
 from octolgp.config import Hyperparameters
 from octolgp.gp.kernels import matern32
@@ -229,6 +230,12 @@ def lattice_tables(geometry: LatticeGeometry, hp: Hyperparameters) -> LatticeTab
     )
 
 
+CHOLESKY_INVERSE_FROM = 128
+"""Lattice size from which :func:`spd_inverse` inverts leaf by leaf through a Cholesky
+factor (LAPACK ``potrf`` + ``potri``, m³ flops) instead of numpy's batched LU inverse
+(about 2.7 m³): measured 1.5x faster at m = 144 (the 2D default's 12 x 12 lattice), no
+faster at m <= 100, where the per-call overhead of the loop is not repaid."""
+
 CHUNK_BYTES = 16 << 20
 """Bytes of the largest transient array of one chunk of leaves in :func:`lattice_posterior`
 (bounded chunks reuse freed memory instead of faulting in fresh pages)."""
@@ -305,7 +312,7 @@ def _posterior_chunk(
     b = ((h - f) * prec) @ tables.phi  # (n, m)
     if hit_points is not None:
         _add_points(A, b, tables, hit_points, prec)
-    Ainv = np.linalg.inv(A)  # A >= I, so well conditioned
+    Ainv = spd_inverse(A)  # A >= I, so well conditioned
     alpha = np.matmul(Ainv, b[:, :, None])[:, :, 0]
     mean = alpha @ tables.psi_t
     # diag(Ψ A⁻¹ Ψᵀ) for every leaf: one product of the stacked inverses with Ψᵀ
@@ -313,6 +320,34 @@ def _posterior_chunk(
     T *= tables.psi_t
     var = tables.residual + T.sum(1)
     return mean, var
+
+
+def spd_inverse(A: FloatArray) -> FloatArray:
+    """Inverses of a stack of symmetric positive definite matrices.
+
+    Parameters
+    ----------
+    A : ndarray of shape (n, m, m)
+        Symmetric positive definite; overwritten when ``m >= CHOLESKY_INVERSE_FROM``.
+
+    Returns
+    -------
+    ndarray of shape (n, m, m)
+        ``A⁻¹`` (equal to ``np.linalg.inv(A)``, and symmetric, to rounding).
+    """
+    m = A.shape[-1]
+    if m < CHOLESKY_INVERSE_FROM:
+        return np.linalg.inv(A)
+    iu = np.triu_indices(m, 1)
+    for j in range(A.shape[0]):  # one LAPACK call pair per matrix
+        factor, info = dpotrf(A[j], lower=0, clean=0)
+        if info == 0:
+            inverse, info = dpotri(factor, lower=0, overwrite_c=1)
+        if info != 0:
+            raise np.linalg.LinAlgError(f"matrix {j} is not positive definite")
+        inverse.T[iu] = inverse[iu]  # potri fills the upper triangle only
+        A[j] = inverse
+    return A
 
 
 def _add_points(
