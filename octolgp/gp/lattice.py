@@ -337,16 +337,16 @@ def spd_inverse(A: FloatArray) -> FloatArray:
     """
     m = A.shape[-1]
     if m < CHOLESKY_INVERSE_FROM:
-        return np.linalg.inv(A)
+        return np.asarray(np.linalg.inv(A), dtype=np.float64)
     iu = np.triu_indices(m, 1)
     for j in range(A.shape[0]):  # one LAPACK call pair per matrix
         factor, info = dpotrf(A[j], lower=0, clean=0)
         if info == 0:
-            inverse, info = dpotri(factor, lower=0, overwrite_c=1)
+            factor, info = dpotri(factor, lower=0, overwrite_c=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"matrix {j} is not positive definite")
-        inverse.T[iu] = inverse[iu]  # potri fills the upper triangle only
-        A[j] = inverse
+        factor.T[iu] = factor[iu]  # potri fills the upper triangle only
+        A[j] = factor
     return A
 
 
