@@ -309,6 +309,15 @@ class OnlineConfig:
         Lattice engine: cap on the lattice points per axis (a 3D leaf costs about
         ``k**6``; its product table ``H k**d (k**d + 1) / 2`` floats). Default 0: 12 in 2D
         (a 48 MB table), 4 in 3D.
+    clear_scans : int or None
+        Lattice engine: how fast the map forgets (newer evidence wins). A voxel's
+        returns are forgotten once this many scans have seen it free since its last
+        return, and a return clears the voxel's free count, so a moved object's voxels
+        read free after the robot has looked through them this many times and a new
+        object registers with its first return (:mod:`octolgp.observations`). ``0``:
+        a static world, every return and free observation kept for good. ``None``
+        (default): 5 with the lattice engine (:attr:`MapConfig.clear_scans`), 0 with
+        the exact one, which keeps the first evidence per voxel. In 0..255.
     """
 
     leaf_depth: int | None = None
@@ -327,6 +336,7 @@ class OnlineConfig:
     free_weight: float = 0.3
     inducing_spacing: float | None = None
     max_inducing_per_axis: int = 0
+    clear_scans: int | None = None
 
     def __post_init__(self) -> None:
         if self.leaf_depth is not None:
@@ -361,6 +371,17 @@ class OnlineConfig:
         _integer("OnlineConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 0, 16)
         if self.max_inducing_per_axis == 1:
             raise OctolgpError("OnlineConfig.max_inducing_per_axis must be 0 or >= 2, got 1")
+        if self.clear_scans is not None:
+            _integer("OnlineConfig", "clear_scans", self.clear_scans, 0, 255)
+            if self.clear_scans and self.engine != "lattice":
+                raise OctolgpError(
+                    "OnlineConfig.clear_scans must be 0 or None with engine='exact' "
+                    f"(forgetting needs the lattice engine), got {self.clear_scans}"
+                )
+
+
+DEFAULT_CLEAR_SCANS = 5
+"""The lattice engine's default ``clear_scans`` (see :class:`OnlineConfig`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -456,6 +477,16 @@ class MapConfig:
         if self.online.inducing_spacing is not None:
             return self.online.inducing_spacing
         return 0.3 if self.dim == 2 else 0.5
+
+    @property
+    def clear_scans(self) -> int:
+        """Scans seeing a voxel free that forget its returns (``online.clear_scans``).
+
+        Default: 5 with the lattice engine, 0 (a static world) with the exact one.
+        """
+        if self.online.clear_scans is not None:
+            return self.online.clear_scans
+        return DEFAULT_CLEAR_SCANS if self.online.engine == "lattice" else 0
 
     @property
     def learn_scans(self) -> int:

@@ -12,6 +12,15 @@ scans the counts add: ``hits[v]`` is the number of scans with a return in ``v``,
 ``frees[v]`` the number whose free segments cross ``v`` without a return there. The
 counts of a set of scans are therefore the sums of the counts of its parts, in any
 order: this is what makes inserting scans one by one equal to inserting them at once.
+
+**Newer evidence wins** (``OnlineConfig.clear_scans`` = K > 0, the default): a voxel's
+state is its return count ``h`` and its free count ``f`` since its last return. A scan
+with a return in the voxel sets ``h += 1, f = 0``; a scan that sees it free sets
+``f += 1`` and, once ``f >= K``, forgets its returns (``h = 0``). The observations of a
+run of scans are summarised per voxel (:class:`VoxelObservations`' ``head_frees``,
+``tail_frees``, ``restart_*``) so that :func:`advance` applies the whole run to a state
+exactly as the scans one by one would; summaries of consecutive runs compose
+(:func:`merge_observations`), so one-by-one and one-step insertion still agree.
 """
 
 from __future__ import annotations
@@ -20,6 +29,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from octolgp.config import MapConfig
 from octolgp.geometry.keys import KEY_BITS, pack_keys, unpack_keys
@@ -52,12 +62,29 @@ class VoxelObservations:
     first_hit : ndarray of shape (n, d)
         The first return in the voxel (scan order, then beam order), metres, world
         frame; NaN where ``hits`` is 0.
+    clear_scans : int
+        The K of the newer-evidence rule the summary below was made for; 0: static
+        (the summary is then ``frees``, ``frees``, zeros and NaN, and unused).
+    head_frees, tail_frees : ndarray of int64, shape (n,)
+        Scans seeing the voxel free before its first return and after its last
+        return (both ``frees`` where ``hits`` is 0).
+    restart_hits : ndarray of int64, shape (n,)
+        Where a run of at least K scans seeing the voxel free lies between two of its
+        returns: the returns from the first one after the last such run on (their
+        predecessors are forgotten); else 0.
+    restart_hit : ndarray of shape (n, d)
+        The first return of the scan that starts ``restart_hits``; NaN where it is 0.
     """
 
     keys: IntArray
     hits: IntArray
     frees: IntArray
     first_hit: np.ndarray
+    clear_scans: int
+    head_frees: IntArray
+    tail_frees: IntArray
+    restart_hits: IntArray
+    restart_hit: np.ndarray
 
     @property
     def n_voxels(self) -> int:
@@ -145,9 +172,10 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     Parameters
     ----------
     scans : iterable of Scan
-        World-frame scans of dimension ``config.dim`` (points addressable).
+        World-frame scans of dimension ``config.dim`` (points addressable), in time
+        order.
     config : MapConfig
-        Uses ``resolution``, ``tree_depth`` and ``free_margin``.
+        Uses ``resolution``, ``tree_depth``, ``free_margin`` and ``clear_scans``.
 
     Returns
     -------
@@ -171,19 +199,27 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     beams = split_beams(origins, ends, max_range, config.free_margin)
     hit_points = ends[beams.is_hit]
     hit_packed = pack_keys(_voxel_keys(hit_points, res, depth))
-    hit_codes = sorted_unique(_scan_codes(hit_packed, scan[beams.is_hit], dim))
+    # one (scan, voxel) code per return; the first return of each, in beam order
+    all_codes = _scan_codes(hit_packed, scan[beams.is_hit], dim)
+    order = np.argsort(all_codes, kind="stable")
+    ordered = all_codes[order]
+    first_of_code = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
+    hit_codes = all_codes[first_of_code]
+    code_points = hit_points[first_of_code]
     seg = beams.has_seg
     free_codes = _free_codes(origins[seg], beams.free_end[seg], scan[seg], res, depth)
     free_codes = free_codes[~np.isin(free_codes, hit_codes, assume_unique=True)]
     mask = (1 << (KEY_BITS * dim)) - 1
     hit_vox, hit_n = _unique_counts(hit_codes & mask)
     free_vox, free_n = _unique_counts(free_codes & mask)
-    # the first return per voxel: a stable sort keeps scan, then beam order
-    order = np.argsort(hit_packed, kind="stable")
-    ordered = hit_packed[order]
+    # the first return per voxel: codes ascend by scan, a stable sort keeps that order
+    order = np.argsort(hit_codes & mask, kind="stable")
+    ordered = (hit_codes & mask)[order]
     first = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
-    first_points = hit_points[first]
-    return _combine(hit_vox, hit_n, free_vox, free_n, first_points, dim)
+    obs = _combine(hit_vox, hit_n, free_vox, free_n, code_points[first], dim)
+    if config.clear_scans:
+        obs = _summarise(obs, hit_codes, code_points, free_codes, config.clear_scans)
+    return obs
 
 
 def _combine(
@@ -194,7 +230,7 @@ def _combine(
     hit_points: np.ndarray,
     dim: int,
 ) -> VoxelObservations:
-    """Observations from sorted unique packed voxels with their counts and first returns."""
+    """Static observations from sorted unique packed voxels, counts and first returns."""
     packed = sorted_unique(np.concatenate([hit_vox, free_vox]))
     hits = np.zeros(packed.size, dtype=np.int64)
     frees = np.zeros(packed.size, dtype=np.int64)
@@ -203,21 +239,246 @@ def _combine(
     hits[at] = hit_n
     first_hit[at] = hit_points
     frees[np.searchsorted(packed, free_vox)] = free_n
-    return VoxelObservations(unpack_keys(packed, dim), hits, frees, first_hit)
+    return _static(unpack_keys(packed, dim), hits, frees, first_hit)
+
+
+def _static(
+    keys: IntArray, hits: IntArray, frees: IntArray, first_hit: np.ndarray
+) -> VoxelObservations:
+    """Observations without a newer-evidence summary (``clear_scans`` 0)."""
+    zeros = np.zeros(hits.size, dtype=np.int64)
+    none = np.full(first_hit.shape, np.nan)
+    return VoxelObservations(keys, hits, frees, first_hit, 0, frees, frees, zeros, none)
+
+
+def _summarise(
+    obs: VoxelObservations,
+    hit_codes: IntArray,
+    hit_points: np.ndarray,
+    free_codes: IntArray,
+    clear_scans: int,
+) -> VoxelObservations:
+    """Add the newer-evidence summary of K = ``clear_scans`` from the (scan, voxel) codes.
+
+    ``hit_codes`` (ascending) and ``hit_points`` are each (scan, voxel)'s code and first
+    return; ``free_codes`` the (scan, voxel) codes seen free. Every voxel has at most
+    one event per scan, so its events sorted by scan are its sequence of scans.
+    """
+    dim = obs.keys.shape[1]
+    bits = KEY_BITS * dim
+    mask = (1 << bits) - 1
+    codes = np.concatenate([hit_codes, free_codes])
+    # events ordered by voxel, then scan (the scan number fits below the voxel's bits)
+    order = np.argsort(((codes & mask) << 12) | (codes >> bits))
+    voxel = (codes & mask)[order]
+    is_hit = order < hit_codes.size
+    n = voxel.size
+    new_group = np.r_[True, voxel[1:] != voxel[:-1]] if n else np.zeros(0, dtype=bool)
+    starts = np.flatnonzero(new_group)
+    group = np.cumsum(new_group) - 1  # index into obs (voxels ascending)
+    rank = np.arange(n) - starts[group]
+    size = np.diff(np.r_[starts, n])
+    hits_at = np.flatnonzero(is_hit)
+    hit_group, hit_rank = group[hits_at], rank[hits_at]
+    last_of_group = np.r_[hit_group[1:] != hit_group[:-1], True] if hits_at.size else hits_at > 0
+    first_of_group = np.r_[True, hit_group[1:] != hit_group[:-1]] if hits_at.size else hits_at > 0
+    head = obs.frees.copy()
+    tail = obs.frees.copy()
+    head[hit_group[first_of_group]] = hit_rank[first_of_group]
+    tail[hit_group[last_of_group]] = size[hit_group[last_of_group]] - 1 - hit_rank[last_of_group]
+    # a run of >= K frees between two returns of a voxel: the later return restarts it
+    same = hit_group[1:] == hit_group[:-1]
+    long_gap = same & (hit_rank[1:] - hit_rank[:-1] - 1 >= clear_scans)
+    after = np.flatnonzero(long_gap) + 1  # positions in the hit events list
+    last = np.r_[hit_group[after][1:] != hit_group[after][:-1], True] if after.size else after > 0
+    after = after[last]
+    restart_hits = np.zeros(obs.hits.size, dtype=np.int64)
+    restart_hit = np.full(obs.first_hit.shape, np.nan)
+    g = hit_group[after]
+    group_end = np.searchsorted(hit_group, g, side="right")
+    restart_hits[g] = group_end - after
+    restart_hit[g] = hit_points[order[hits_at[after]]]
+    return VoxelObservations(
+        obs.keys,
+        obs.hits,
+        obs.frees,
+        obs.first_hit,
+        clear_scans,
+        head,
+        tail,
+        restart_hits,
+        restart_hit,
+    )
 
 
 def merge_observations(parts: list[VoxelObservations], dim: int) -> VoxelObservations:
-    """The observations of several disjoint sets of scans: counts add per voxel."""
-    packed = np.concatenate([pack_keys(p.keys) for p in parts]) if parts else np.zeros(0)
-    hits = np.concatenate([p.hits for p in parts]) if parts else np.zeros(0, np.int64)
-    frees = np.concatenate([p.frees for p in parts]) if parts else np.zeros(0, np.int64)
-    points = np.concatenate([p.first_hit for p in parts]) if parts else np.zeros((0, dim))
-    uniq, inverse = np.unique(packed.astype(np.int64), return_inverse=True)
-    h = np.bincount(inverse, weights=hits, minlength=uniq.size).astype(np.int64)
-    f = np.bincount(inverse, weights=frees, minlength=uniq.size).astype(np.int64)
-    # the first part (in time order) with a return in the voxel gives its first return
-    has = np.flatnonzero(hits > 0)
-    first_hit = np.full((uniq.size, dim), np.nan)
-    _, pick = np.unique(inverse[has], return_index=True)
-    first_hit[inverse[has[pick]]] = points[has[pick]]
-    return VoxelObservations(unpack_keys(uniq, dim), h, f, first_hit)
+    """The observations of consecutive runs of scans, given in time order.
+
+    Counts add per voxel; the first part with a return in a voxel gives its first
+    return; the newer-evidence summaries compose (the parts share ``clear_scans``).
+    """
+    if not parts:
+        empty = np.zeros(0, dtype=np.int64)
+        return _static(np.zeros((0, dim), dtype=np.int64), empty, empty, np.zeros((0, dim)))
+    out = parts[0]
+    for part in parts[1:]:  # one iteration per part
+        out = _then(out, part, dim)
+    return out
+
+
+def _aligned(obs: VoxelObservations, packed: IntArray, union: IntArray) -> VoxelObservations:
+    """``obs`` on the voxels ``union`` (a superset): absent voxels saw nothing."""
+    at = np.searchsorted(union, packed)
+    n, d = union.size, obs.first_hit.shape[1]
+
+    def put(values: np.ndarray, fill: float) -> np.ndarray:
+        full = np.full((n, *values.shape[1:]), fill, dtype=values.dtype)
+        full[at] = values
+        return full
+
+    return VoxelObservations(
+        unpack_keys(union, d),
+        put(obs.hits, 0),
+        put(obs.frees, 0),
+        put(obs.first_hit, np.nan),
+        obs.clear_scans,
+        put(obs.head_frees, 0),
+        put(obs.tail_frees, 0),
+        put(obs.restart_hits, 0),
+        put(obs.restart_hit, np.nan),
+    )
+
+
+def _then(a: VoxelObservations, b: VoxelObservations, dim: int) -> VoxelObservations:
+    """The observations of run ``a`` followed by run ``b``."""
+    if a.clear_scans != b.clear_scans:
+        raise ValueError("observations of different clear_scans cannot be merged")
+    pa, pb = pack_keys(a.keys), pack_keys(b.keys)
+    union = sorted_unique(np.concatenate([pa, pb]).astype(np.int64))
+    a, b = _aligned(a, pa, union), _aligned(b, pb, union)
+    has_a, has_b = a.hits > 0, b.hits > 0
+    first_hit = np.where(has_a[:, None], a.first_hit, b.first_hit)
+    hits, frees = a.hits + b.hits, a.frees + b.frees
+    k = a.clear_scans
+    if not k:
+        return _static(a.keys, hits, frees, first_hit)
+    head = np.where(has_a, a.head_frees, a.frees + b.head_frees)
+    tail = np.where(has_b, b.tail_frees, b.frees + a.tail_frees)
+    middle = has_a & has_b & (a.tail_frees + b.head_frees >= k)
+    from_b = b.restart_hits > 0
+    from_middle = ~from_b & middle
+    from_a = ~from_b & ~middle & (a.restart_hits > 0)
+    restart_hits = np.select(
+        [from_b, from_middle, from_a], [b.restart_hits, b.hits, a.restart_hits + b.hits], 0
+    )
+    restart_hit = np.select(
+        [from_b[:, None], from_middle[:, None], from_a[:, None]],
+        [b.restart_hit, b.first_hit, a.restart_hit],
+        np.nan,
+    )
+    return VoxelObservations(
+        a.keys, hits, frees, first_hit, k, head, tail, restart_hits, restart_hit
+    )
+
+
+@dataclass(frozen=True)
+class VoxelState:
+    """A voxel's evidence after a run of scans (:func:`advance`), per (voxel, copy) pair.
+
+    Attributes
+    ----------
+    hits, frees : ndarray of int64, shape (p,)
+        The new counts (saturated).
+    position : ndarray of shape (p, d)
+        The return to keep for the voxel where ``replace``; NaN elsewhere.
+    replace : ndarray of bool, shape (p,)
+        The voxel's kept return becomes ``position`` (a first or renewed return).
+    drop : ndarray of bool, shape (p,)
+        The voxel's kept return is forgotten (no return left).
+    """
+
+    hits: IntArray
+    frees: IntArray
+    position: np.ndarray
+    replace: np.ndarray
+    drop: np.ndarray
+
+
+def advance(
+    hits: IntArray,
+    frees: IntArray,
+    obs: VoxelObservations,
+    at: IntArray,
+    evidence_cap: int,
+) -> VoxelState:
+    """Apply a run of scans' observations to voxel states, as the scans one by one would.
+
+    Parameters
+    ----------
+    hits, frees : ndarray of int, shape (p,)
+        The current counts of ``p`` voxel copies (a voxel lies in up to ``2**d`` leaf
+        halo boxes; every copy holds the same state).
+    obs : VoxelObservations
+        The run's observations.
+    at : ndarray of int, shape (p,)
+        Each copy's voxel in ``obs``.
+    evidence_cap : int
+        Counts saturate at this (the free count at ``max(K, cap)`` with the
+        newer-evidence rule, which needs to count to K).
+
+    Returns
+    -------
+    VoxelState
+    """
+    h0, f0 = hits.astype(np.int64), frees.astype(np.int64)
+    n_h, n_f = obs.hits[at], obs.frees[at]
+    k = obs.clear_scans
+    seen = n_h > 0
+    if not k:  # static: counts add, the first return stays
+        replace = (h0 == 0) & seen
+        position = np.where(replace[:, None], obs.first_hit[at], np.nan)
+        h = np.minimum(h0 + n_h, evidence_cap)
+        f = np.minimum(f0 + n_f, evidence_cap)
+        return VoxelState(h, f, position, replace, np.zeros(h.size, dtype=bool))
+    f_cap = max(k, evidence_cap)
+    restart = obs.restart_hits[at] > 0
+    first_on = seen & ~restart & ((h0 == 0) | (f0 + obs.head_frees[at] >= k))
+    h = np.select([restart, first_on, seen], [obs.restart_hits[at], n_h, h0 + n_h], h0)
+    f = np.where(seen, obs.tail_frees[at], f0 + n_f)
+    cleared = f >= k
+    h = np.where(cleared, 0, np.minimum(h, evidence_cap))
+    f = np.minimum(f, f_cap)
+    replace = (restart | first_on) & ~cleared
+    position = np.select(
+        [(restart & replace)[:, None], (first_on & replace)[:, None]],
+        [obs.restart_hit[at], obs.first_hit[at]],
+        np.nan,
+    )
+    drop = (h0 > 0) & ((h == 0) | replace)
+    return VoxelState(h, f, position, replace, drop)
+
+
+def effective_counts(
+    hits: NDArray[np.integer], frees: NDArray[np.integer], evidence_cap: int, clear_scans: int
+) -> tuple[NDArray[np.integer], NDArray[np.integer]]:
+    """The counts a leaf GP sees, each up to ``evidence_cap``.
+
+    With newer evidence winning (``clear_scans`` > 0) a voxel holding a return is
+    occupied only: its later frees count only towards forgetting the return, so a
+    wall voxel that grazing beams see free now and then does not flip its leaf.
+
+    Parameters
+    ----------
+    hits, frees : ndarray of int, same shape
+        Stored counts.
+    evidence_cap, clear_scans : int
+
+    Returns
+    -------
+    hits, frees : ndarray of int
+    """
+    h = np.minimum(hits, evidence_cap)
+    f = np.minimum(frees, evidence_cap)
+    if clear_scans:
+        f = np.where(h > 0, 0, f).astype(f.dtype)
+    return h, f

@@ -62,14 +62,17 @@ def test_budget_evicts_to_the_file_and_gives_the_same_map(
     tmp_path: Path, reference: list[dict[int, tuple[bytes, ...]]]
 ) -> None:
     budget = dataclasses.replace(CONFIG, memory_budget_mb=0.2)
+    scans = _scans() + _scans()[:5]  # a revisit loads evicted leaves back
+    unbounded = OnlineMap(CONFIG)
+    unbounded.insert_scans(scans)
     with OnlineMap(budget, path=tmp_path / "b.octolgp") as m:
-        for s in _scans() + _scans()[:5]:  # a revisit loads evicted leaves back
+        for s in scans:
             m.insert_scan(s)
             assert m.memory_bytes() <= 0.2e6
         assert m.store.evictions > 0
         assert m.store.loads > 0
         assert m.store.resident < len(m.store)
-        assert _values(m) == reference[-1]
+        assert _values(m) == _values(unbounded)
 
 
 def test_budget_without_a_path_spills_to_a_temporary_file(
@@ -245,6 +248,22 @@ def test_version_1_leaf_records_still_read() -> None:
         back = decode_leaf(old)
         assert back.counts.shape == (2, 0)
         assert encode_leaf(back) == blob
+
+
+def test_a_map_file_from_before_newer_evidence_won_reopens_static(tmp_path: Path) -> None:
+    """Files without the resolved ``clear_scans`` hold static counts and keep that rule."""
+    path = tmp_path / "static.octolgp"
+    with OnlineMap(CONFIG, path=path) as m:
+        m.insert_scans(_scans()[:3])
+        assert m.config.clear_scans == 5
+    with OnlineMap.open(path) as m:  # a file of today keeps its rule and its config
+        assert m.config == CONFIG
+    con = sqlite3.connect(path)
+    con.execute("DELETE FROM meta WHERE key = 'clear_scans'")
+    con.commit()
+    con.close()
+    with OnlineMap.open(path) as m:
+        assert m.config.online.clear_scans == 0
 
 
 def test_a_map_file_from_before_the_lattice_engine_reopens_exact(tmp_path: Path) -> None:

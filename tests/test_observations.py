@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from octolgp import MapConfig, Scan
-from octolgp.observations import merge_observations, observe
+from octolgp.observations import advance, merge_observations, observe
 
 
 def _brute_force(
@@ -122,3 +123,86 @@ def test_a_lattice_leaf_keeps_the_first_return_of_each_voxel_it_sees_occupied() 
             np.testing.assert_array_equal(point, first[key])  # the first, in time order
             local = np.floor(point / 0.2).astype(int) + (1 << 15) - (leaf.index * side - halo)
             assert leaf.counts[0, local @ box ** np.arange(2)] > 0
+
+
+def _flicker_scans(rng: np.random.Generator, dim: int, n: int) -> list[Scan]:
+    """Scans whose beams end at one of two ranges at random: voxels seen hit, then free."""
+    direction = rng.normal(size=(30, dim))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    scans = []
+    for _ in range(n):
+        origin = rng.normal(scale=0.02, size=dim)
+        r = np.where(rng.random(30) < 0.5, 1.0, 2.0) + rng.uniform(-0.05, 0.05, 30)
+        scans.append(Scan(origin=origin, points=origin + r[:, None] * direction, max_range=4.0))
+    return scans
+
+
+def _one_by_one(
+    scans: list[Scan], config: MapConfig, clear: int, cap: int
+) -> dict[int, tuple[int, int, np.ndarray | None]]:
+    """The newer-evidence rule applied scan by scan, voxel by voxel (the reference)."""
+    from octolgp.geometry.keys import pack_keys
+
+    state: dict[int, tuple[int, int, np.ndarray | None]] = {}
+    for scan in scans:
+        obs = observe([scan], config)  # one scan: per voxel, a return or free
+        for key, h, p in zip(pack_keys(obs.keys).tolist(), obs.hits, obs.first_hit, strict=True):
+            hits, frees, pos = state.get(key, (0, 0, None))
+            if h:
+                pos = p if hits == 0 else pos
+                hits, frees = min(hits + 1, cap), 0
+            else:
+                frees = min(frees + 1, max(clear, cap))
+                if frees >= clear:
+                    hits, pos = 0, None
+            state[key] = (hits, frees, pos)
+    return state
+
+
+@pytest.mark.parametrize(("clear", "cap"), [(1, 1), (2, 1), (3, 2), (5, 1)])
+def test_the_newer_evidence_summary_is_the_rule_applied_scan_by_scan(clear: int, cap: int) -> None:
+    from octolgp.config import OnlineConfig
+    from octolgp.geometry.keys import pack_keys
+
+    for dim in (2, 3):
+        rng = np.random.default_rng(10 * clear + dim)
+        scans = _flicker_scans(rng, dim, 14)
+        config = MapConfig(dim=dim, resolution=0.1, online=OnlineConfig(clear_scans=clear))
+        truth = _one_by_one(scans, config, clear, cap)
+        # the whole run at once, and in parts merged, and in parts applied in turn
+        whole = observe(scans, config)
+        merged = merge_observations(
+            [observe(scans[:5], config), observe(scans[5:6], config), observe(scans[6:], config)],
+            dim,
+        )
+        for obs in (whole, merged):
+            np.testing.assert_array_equal(obs.keys, whole.keys)
+            zero = np.zeros(obs.hits.size, dtype=np.int64)
+            got = advance(zero, zero, obs, np.arange(obs.hits.size), cap)
+            for i, key in enumerate(pack_keys(obs.keys).tolist()):
+                hits, frees, pos = truth[key]
+                assert (got.hits[i], got.frees[i]) == (hits, frees)
+                assert got.replace[i] == (pos is not None)
+                if pos is not None:
+                    np.testing.assert_array_equal(got.position[i], pos)
+        state: dict[int, tuple[int, int, np.ndarray | None]] = {}
+        for part in (scans[:4], scans[4:9], scans[9:]):
+            obs = observe(part, config)
+            keys = pack_keys(obs.keys).tolist()
+            h0 = np.array([state.get(k, (0, 0, None))[0] for k in keys], dtype=np.int64)
+            f0 = np.array([state.get(k, (0, 0, None))[1] for k in keys], dtype=np.int64)
+            got = advance(h0, f0, obs, np.arange(len(keys)), cap)
+            for i, k in enumerate(keys):
+                pos = state.get(k, (0, 0, None))[2]
+                if got.drop[i]:
+                    pos = None
+                if got.replace[i]:
+                    pos = got.position[i]
+                state[k] = (int(got.hits[i]), int(got.frees[i]), pos)
+        assert state.keys() == truth.keys()
+        for k, (hits, frees, pos) in truth.items():
+            assert state[k][:2] == (hits, frees)
+            assert (state[k][2] is None) == (pos is None)
+            if pos is not None:
+                np.testing.assert_array_equal(state[k][2], pos)
+        assert any(v[0] == 0 and v[1] >= clear for v in truth.values())  # some were forgotten

@@ -170,7 +170,11 @@ def test_untouched_leaves_are_bit_for_bit_unchanged(engine: str) -> None:
     after = snapshot(m)
     assert 0 < update.refit_leaves <= update.touched_leaves < len(before)
     changed = {k for k in before if before[k] != after[k]}
-    assert 0 < len(changed) <= update.refit_leaves
+    refit = {k for k in before if before[k][4:] != after[k][4:]}  # mean, var, prob
+    # a leaf's values move only when it is refitted; its evidence only when touched
+    # (a free count on its way to clear_scans changes no value)
+    assert 0 < len(refit) <= update.refit_leaves
+    assert len(changed) <= update.touched_leaves
     for key in set(before) - changed:
         assert before[key] == after[key]
     # a far-away leaf did not move at all
@@ -191,8 +195,9 @@ def test_one_by_one_equals_all_at_once(engine: str) -> None:
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_revisiting_adds_nothing_and_memory_saturates(engine: str) -> None:
+    """A static world (``clear_scans=0``, the exact engine's rule): a revisit is free."""
     scans = [room_scan((x, 0.5 * x)) for x in np.linspace(-2, 2, 5)]
-    m = OnlineMap(config2d(engine=engine))
+    m = OnlineMap(config2d(engine=engine, clear_scans=0))
     m.insert_scans(scans)
     first = snapshot(m)
     mem = m.memory_bytes()
@@ -201,6 +206,31 @@ def test_revisiting_adds_nothing_and_memory_saturates(engine: str) -> None:
     assert all(u.touched_leaves > 0 for u in updates)
     assert m.memory_bytes() == mem
     assert snapshot(m) == first
+
+
+def test_a_static_revisit_settles_when_newer_evidence_wins() -> None:
+    """The default rule on a static scene: a revisit refits nothing, memory stays put.
+
+    No voxel of this room is seen free ``clear_scans`` times between two of its returns,
+    so no return is forgotten; a wall voxel that a grazing beam sees free keeps reading
+    occupied (its frees only count towards forgetting), and free counts that climb
+    towards ``clear_scans`` change no value.
+    """
+    scans = [room_scan((x, 0.5 * x)) for x in np.linspace(-2, 2, 5)]
+    m = OnlineMap(config2d())
+    assert m.config.clear_scans > 0
+    m.insert_scans(scans)
+    first = snapshot(m)
+    mem = m.memory_bytes()
+    for _ in range(2):
+        updates = m.insert_scans(scans)
+        assert all(u.refit_leaves == 0 and u.new_items == 0 for u in updates)
+        assert all(u.touched_leaves > 0 for u in updates)
+    again = snapshot(m)
+    assert again.keys() == first.keys()
+    assert all(again[k][4:] == first[k][4:] for k in again)  # mean, var, prob
+    assert all(again[k][:3] == first[k][:3] for k in again)  # kept returns
+    assert m.memory_bytes() == mem
 
 
 def test_evidence_per_leaf_is_bounded_by_its_voxels() -> None:
@@ -397,11 +427,21 @@ def test_bad_queries_raise(points: object, field: str) -> None:
         ({"inducing_spacing": -1.0}, "inducing_spacing"),
         ({"max_inducing_per_axis": 1}, "max_inducing_per_axis"),
         ({"max_inducing_per_axis": 17}, "max_inducing_per_axis"),
+        ({"clear_scans": -1}, "clear_scans"),
+        ({"clear_scans": 256}, "clear_scans"),
+        ({"clear_scans": 2.0}, "clear_scans"),
+        ({"clear_scans": 3, "engine": "exact"}, "clear_scans"),
     ],
 )
 def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:
     with pytest.raises(OctolgpError, match=field):
         OnlineConfig(**kwargs)  # type: ignore[arg-type]
+
+
+def test_clear_scans_defaults_by_engine() -> None:
+    assert MapConfig().clear_scans == 5
+    assert MapConfig(online=OnlineConfig(engine="exact")).clear_scans == 0
+    assert MapConfig(online=OnlineConfig(clear_scans=0)).clear_scans == 0
 
 
 def test_leaf_depth_beyond_tree_depth_is_refused() -> None:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import itertools
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,7 +24,7 @@ from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import addressable_range, pack_keys
 from octolgp.mapping.grid import LeafGrid, assign_points, assign_segments
 from octolgp.mapping.store import Leaf
-from octolgp.observations import VoxelObservations, observe
+from octolgp.observations import VoxelObservations, advance, effective_counts, observe
 from octolgp.scan import Scan, check_scan_size
 from octolgp.training import IntArray, TrainingData, make_training_data
 
@@ -87,12 +87,17 @@ class Evidence:
     touched : list of int
         Packed keys of every leaf the step's evidence reached, ascending.
     new_items : int
-        Items added over all leaves.
+        Items added over all leaves (lattice engine: (voxel, class) inputs of the leaf
+        GPs that changed, added or forgotten).
+    kept : list of (int, Leaf)
+        Lattice engine: leaves whose counts moved without changing what their GP sees
+        (a free count on its way to ``clear_scans``); stored as they are, not refitted.
     """
 
     changed: list[tuple[int, Leaf]]
     touched: list[int]
     new_items: int
+    kept: list[tuple[int, Leaf]] = field(default_factory=list)
 
 
 def gather_evidence(
@@ -205,33 +210,43 @@ def gather_observations(
     cap = config.online.evidence_cap
     before_h = old[inverse, 0, flat].astype(np.int64)
     before_f = old[inverse, 1, flat].astype(np.int64)
-    after_h = np.minimum(before_h + obs.hits[voxel], cap)
-    after_f = np.minimum(before_f + obs.frees[voxel], cap)
+    state = advance(before_h, before_f, obs, voxel, cap)
     new = old.copy()
-    new[inverse, 0, flat] = after_h
-    new[inverse, 1, flat] = after_f
-    moved = (after_h != before_h) | (after_f != before_f)
-    # a leaf keeps the first return of each voxel it has seen occupied: the pairs whose
-    # voxel the leaf sees occupied for the first time bring their position
-    with_hit = np.flatnonzero((before_h == 0) & (after_h > 0))
-    with_hit = with_hit[np.argsort(inverse[with_hit], kind="stable")]
-    hit_bounds = np.searchsorted(inverse[with_hit], np.arange(touched.size + 1))
+    new[inverse, 0, flat] = state.hits
+    new[inverse, 1, flat] = state.frees
+    # what the leaf GP sees: its effective counts, and the kept returns
+    eh0, ef0 = effective_counts(before_h, before_f, cap, obs.clear_scans)
+    eh1, ef1 = effective_counts(state.hits, state.frees, cap, obs.clear_scans)
+    d_h, d_f = eh1 != eh0, ef1 != ef0
+    moves = state.replace | state.drop
+    effective = d_h | d_f | moves
+    stored = effective | (state.hits != before_h) | (state.frees != before_f)
+    # a leaf keeps one return per voxel it sees occupied; the pairs whose return is
+    # new or forgotten, grouped by leaf
+    with_move = np.flatnonzero(moves)
+    with_move = with_move[np.argsort(inverse[with_move], kind="stable")]
+    move_bounds = np.searchsorted(inverse[with_move], np.arange(touched.size + 1))
+    refit = np.zeros(touched.size, dtype=bool)
+    refit[inverse[effective]] = True
     packed_voxels = pack_keys(keys)
     changed: list[tuple[int, Leaf]] = []
-    for j in np.unique(inverse[moved]).tolist():  # one iteration per changed leaf
+    kept: list[tuple[int, Leaf]] = []
+    for j in np.unique(inverse[stored]).tolist():  # one iteration per leaf with new counts
         leaf = current[j]
         if leaf is None:
             leaf = Leaf.empty(leaf_index[first[j]])
         leaf = leaf.evolve(counts=new[j].copy())
-        pairs = voxel[with_hit[hit_bounds[j] : hit_bounds[j + 1]]]
+        pairs = with_move[move_bounds[j] : move_bounds[j + 1]]
         if pairs.size:  # kept in voxel-key order, however the scans were grouped
-            hit_keys = np.concatenate([leaf.hit_keys, packed_voxels[pairs]])
+            gone = np.isin(leaf.hit_keys, packed_voxels[voxel[pairs[state.drop[pairs]]]])
+            add = pairs[state.replace[pairs]]
+            hit_keys = np.concatenate([leaf.hit_keys[~gone], packed_voxels[voxel[add]]])
             order = np.argsort(hit_keys, kind="stable")
-            leaf.hits = np.concatenate([leaf.hits, obs.first_hit[pairs]])[order]
+            leaf.hits = np.concatenate([leaf.hits[~gone], state.position[add]])[order]
             leaf.hit_keys = hit_keys[order]
-        changed.append((int(touched[j]), leaf))
-    gained = int((after_h - before_h).sum() + (after_f - before_f).sum())
-    return Evidence(changed, touched.tolist(), gained)
+        (changed if refit[j] else kept).append((int(touched[j]), leaf))
+    gained = int(d_h.sum() + d_f.sum())
+    return Evidence(changed, touched.tolist(), gained, kept)
 
 
 def step_evidence(
@@ -280,12 +295,12 @@ def gather_batch(
     lookup: Callable[[int], Leaf | None],
     chunk_beams: int,
     stats: dict[str, float],
-) -> tuple[dict[int, Leaf], int]:
+) -> tuple[dict[int, Leaf], set[int], int]:
     """Every scan's evidence, chunk by chunk in time order, as new leaves by key.
 
-    Chunks in time order give exactly the leaves of all scans at once (the first item
-    per voxel wins) while bounding the transient arrays of the assignment by the
-    chunk, not the log.
+    Chunks in time order give exactly the leaves of all scans at once (the evidence
+    rules are applied in time order) while bounding the transient arrays of the
+    assignment by the chunk, not the log.
 
     Parameters
     ----------
@@ -304,10 +319,13 @@ def gather_batch(
     Returns
     -------
     leaves : dict of int to Leaf
-        The leaves that gained evidence, new objects, in first-touch order.
+        The leaves with new evidence, new objects, in first-touch order.
+    refit : set of int
+        The keys among them whose GP inputs changed (the others are only stored).
     new_items : int
     """
     gathered: dict[int, Leaf] = {}
+    refit: set[int] = set()
     new_items = 0
     stats["training"] = stats["assign"] = 0.0
 
@@ -320,4 +338,7 @@ def gather_batch(
         new_items += evidence.new_items
         for key, leaf in evidence.changed:  # one iteration per leaf that gained evidence
             gathered[key] = leaf
-    return gathered, new_items
+            refit.add(key)
+        for key, leaf in evidence.kept:  # one iteration per leaf with new counts only
+            gathered[key] = leaf
+    return gathered, refit, new_items

@@ -36,6 +36,7 @@ from octolgp.gp.regression import fit_predict
 from octolgp.mapping.cache import KernelCache, leaf_blocks
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
+from octolgp.observations import effective_counts
 from octolgp.partition import partition
 from octolgp.scan import FloatArray
 from octolgp.training import TrainingData
@@ -227,16 +228,15 @@ def fit_lattice_leaves(
         return []
     oc = config.online
     tables = map_tables(config, hp)
-    counts = np.stack([leaf.counts for leaf in leaves])
+    stored = np.stack([leaf.counts for leaf in leaves])
+    hits, frees = effective_counts(stored[:, 0], stored[:, 1], oc.evidence_cap, config.clear_scans)
     n_halo = tables.phi.shape[0]
-    if counts.shape[2] != n_halo:
-        raise ValueError(f"lattice leaves hold {counts.shape[2]} voxels, expected {n_halo}")
-    points = return_points(leaves, LeafGrid.from_config(config), tables)
+    if stored.shape[2] != n_halo:
+        raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
+    points = return_points(leaves, LeafGrid.from_config(config), tables, oc.evidence_cap)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    parts = [
-        (counts[lo:hi, 0], counts[lo:hi, 1], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)
-    ]
+    parts = [(hits[lo:hi], frees[lo:hi], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
 
     def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
         return lattice_posterior(tables, part[0], part[1], oc.free_weight, part[2])
@@ -263,13 +263,15 @@ def fit_lattice_leaves(
     return out
 
 
-def return_points(leaves: list[Leaf], grid: LeafGrid, tables: LatticeTables) -> HitPoints:
+def return_points(
+    leaves: list[Leaf], grid: LeafGrid, tables: LatticeTables, evidence_cap: int
+) -> HitPoints:
     """Each lattice leaf's returns at their measured positions, with their weights.
 
-    A voxel seen occupied contributes one point of weight ``counts[0, v]``: the first
-    return the leaf kept for it (``Leaf.hits``), or the voxel centre if it has none
-    (leaves written before positions were kept). Positions are relative to the leaf's
-    lower corner, metres.
+    A voxel seen occupied contributes one point of weight ``min(counts[0, v],
+    evidence_cap)``: the return the leaf kept for it (``Leaf.hits``), or the voxel
+    centre if it has none (leaves written before positions were kept). Positions are
+    relative to the leaf's lower corner, metres.
     """
     box, halo, d = tables.geometry.box, grid.halo_voxels, grid.dim
     n_kept = np.array([leaf.hit_keys.size for leaf in leaves])
@@ -283,7 +285,7 @@ def return_points(leaves: list[Leaf], grid: LeafGrid, tables: LatticeTables) -> 
         local = unpack_keys(keys, d) - (index[owner] * grid.side - halo)
         flat = local @ (box ** np.arange(d, dtype=np.int64))
         counts = np.concatenate([leaf.counts[0] for leaf in leaves]).reshape(len(leaves), -1)
-        weights = counts[owner, flat].astype(np.float64)
+        weights = np.minimum(counts[owner, flat], evidence_cap).astype(np.float64)
         lo, _ = grid.box(index)
         pos = np.concatenate([leaf.hits for leaf in leaves]) - lo[owner]
         cuts = np.cumsum(n_kept)[:-1]
@@ -291,7 +293,8 @@ def return_points(leaves: list[Leaf], grid: LeafGrid, tables: LatticeTables) -> 
     centres = tables.geometry.halo_centres()
     for leaf in leaves:  # leaves from files without positions: returns at voxel centres
         occupied = np.flatnonzero(leaf.counts[0])
-        out.append((centres[occupied], leaf.counts[0, occupied].astype(np.float64)))
+        weights = np.minimum(leaf.counts[0, occupied], evidence_cap).astype(np.float64)
+        out.append((centres[occupied], weights))
     return out
 
 

@@ -354,8 +354,8 @@ class OnlineMap(MapReads):
         t = time.perf_counter()
         keys = [k for k, _ in evidence.changed]
         fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
-        self.store.apply(fitted, evidence.touched, index)
-        self._commit(keys, journal, index)
+        self.store.apply([*fitted, *evidence.kept], evidence.touched, index)
+        self._commit(sorted([*keys, *(k for k, _ in evidence.kept)]), journal, index)
         stages["store"] = time.perf_counter() - t
         repaired = self._count_repairs(fits)
         update = ScanUpdate(
@@ -430,11 +430,16 @@ class OnlineMap(MapReads):
             logger.info("learnt hyperparameters on the first scans: %s", hp)
             self.hyperparameters, self._buffer, self._provisional = hp, [], None
         with self._blas_limit():
-            gathered, new_items = gather_batch(
+            gathered, refit, new_items = gather_batch(
                 scan_list, self.grid, self._raw_config, self.store.get, CHUNK_BEAMS, stats
             )
-        keys, leaves = list(gathered), list(gathered.values())
-        del gathered
+        kept = [(k, leaf) for k, leaf in gathered.items() if k not in refit]
+        if kept:  # new counts, same GP inputs: stored as they are
+            self.store.apply(kept, (), index)
+            self._commit([k for k, _ in kept], [], self.n_scans)
+        keys = [k for k in gathered if k in refit]
+        leaves = [gathered[k] for k in keys]
+        del gathered, kept
         t = time.perf_counter()
         pruned = repaired = done = 0
         run = self._local_fitter if fitter is None else fitter

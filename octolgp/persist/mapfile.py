@@ -230,6 +230,7 @@ class MapFile:
                     ("config", json.dumps(config.to_dict())),
                     ("hyperparameters", _hp_json(hyperparameters)),
                     ("n_scans", str(n_scans)),
+                    ("clear_scans", str(config.clear_scans)),  # the evidence rule, resolved
                 ]
                 con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
                 for k, leaf in leaves:  # one row per leaf
@@ -280,6 +281,11 @@ class MapFile:
             # files from before the lattice engine hold the exact engine's leaves
             stored.setdefault("online", {}).setdefault("engine", "exact")
             config = MapConfig.from_dict(stored)
+            # files from before newer evidence won hold static counts: clear_scans 0
+            written = int(meta.get("clear_scans", "0"))
+            if "clear_scans" not in stored["online"] and written != config.clear_scans:
+                stored["online"]["clear_scans"] = written
+                config = MapConfig.from_dict(stored)
             hp_data = json.loads(meta["hyperparameters"])
             hp = None if hp_data is None else Hyperparameters(**hp_data)
             n_scans = int(meta["n_scans"])
