@@ -1,4 +1,4 @@
-"""Command line: ``octolgp simulate | run | build | replay | query | export | bench | eval``.
+"""Command line: ``octolgp simulate | run | build | replay | query | export | correct | bench | eval``.
 
 The CLI is the only place that exits. A user error prints one line on stderr and
 exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
@@ -7,7 +7,7 @@ exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
 This module holds the argument parser, its shared option types and groups, and
 :func:`main`; the commands are in :mod:`octolgp.cli.build` (``simulate``, ``build``,
 ``eval``, ``bench``), :mod:`octolgp.cli.online` (``run``, ``replay``) and
-:mod:`octolgp.cli.maps` (``query``, ``export``).
+:mod:`octolgp.cli.maps` (``query``, ``export``, ``correct``).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from typing import NoReturn
 
 from octolgp import __version__
 from octolgp.cli.build import cmd_bench, cmd_build, cmd_eval, cmd_simulate
-from octolgp.cli.maps import cmd_export, cmd_query
+from octolgp.cli.maps import cmd_correct, cmd_export, cmd_query
 from octolgp.cli.online import cmd_replay, cmd_run
 from octolgp.errors import OctolgpError
 
@@ -31,6 +31,7 @@ EXAMPLES = """examples:
   octolgp replay intel.rrd --out intel2.octolgp
   octolgp query intel.octolgp --points pts.npy --out prob.npy
   octolgp export intel.octolgp --out intel.bt
+  octolgp correct intel.octolgp --poses corrections.txt
   octolgp bench paper2d --out bench_out
   octolgp eval data/intel_lab/intel-corrected.log.gz --seeds 5 --out eval_intel
 """
@@ -177,6 +178,18 @@ def make_parser() -> argparse.ArgumentParser:
     )
     export.add_argument("--z", type=float, default=None, help="height of a 3D map's PNG slice")
     export.set_defaults(func=cmd_export)
+
+    correct = sub.add_parser(
+        "correct",
+        help="move scans of a map file by corrected poses (a loop closure)",
+        description="Apply rigid corrections to journaled scans of a map file and rebuild "
+        "the leaves they reach, in one transaction. CORRECTIONS: one line per scan, its "
+        "number (from 1) then the transform, either the (d+1)x(d+1) matrix row by row or "
+        "a pose 'x y yaw' (2D) / 'tx ty tz qx qy qz qw' (3D); '#' starts a comment.",
+    )
+    correct.add_argument("map", help="map file written by run (it holds the scans' journal)")
+    correct.add_argument("--poses", required=True, help="corrections file (see above)")
+    correct.set_defaults(func=cmd_correct)
 
     bench = sub.add_parser("bench", help="reproduce the paper's Table II, Fig. 2-4")
     bench.add_argument("scene", choices=["paper2d"])

@@ -1,4 +1,4 @@
-"""The commands on a map file: ``query`` (P(occupied) at points) and ``export``."""
+"""The commands on a map file: ``query`` (P(occupied) at points), ``export``, ``correct``."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 from octolgp.errors import OctolgpError
 
-__all__ = ["cmd_export", "cmd_query"]
+__all__ = ["cmd_correct", "cmd_export", "cmd_query"]
 
 
 def cmd_query(args: argparse.Namespace) -> int:
@@ -60,4 +60,19 @@ def cmd_export(args: argparse.Namespace) -> int:
         centres, prob = centres[layer, :2], prob[layer]
     write_png(out, centres, prob, res)
     print(f"wrote {out}: {prob.size} voxels")
+    return 0
+
+
+def cmd_correct(args: argparse.Namespace) -> int:
+    """``octolgp correct``: apply pose corrections to a map file, in one transaction."""
+    from octolgp.io.corrections import read_corrections
+    from octolgp.mapping.online import OnlineMap
+
+    with OnlineMap.open(args.map) as m:
+        corrections = read_corrections(args.poses, m.config.dim)
+        update = m.correct_scans(corrections)
+    print(
+        f"corrected {len(corrections)} scans of {args.map}: {update.refit_leaves} leaves "
+        f"rebuilt, {update.removed_leaves} removed, in {update.seconds:.2f} s"
+    )
     return 0

@@ -62,6 +62,14 @@ class KernelCache:
                 self._entries.move_to_end(key)
             return entry
 
+    def discard(self, keys: list[int]) -> None:
+        """Forget the entries of leaves whose items were rebuilt (not appended to)."""
+        with self._lock:
+            for key in keys:  # one iteration per rebuilt leaf
+                old = self._entries.pop(key, None)
+                if old is not None:
+                    self.bytes -= old.K.nbytes + old.Ks.nbytes
+
     def put(self, key: int, entry: LeafBlocks) -> None:
         """Store (or replace) the entry of leaf ``key`` and evict down to the budget."""
         size = entry.K.nbytes + entry.Ks.nbytes

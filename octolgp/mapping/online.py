@@ -45,18 +45,27 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
+import numpy as np
+from numpy.typing import ArrayLike
 from threadpoolctl import ThreadpoolController
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
+from octolgp.geometry.keys import unpack_keys
 from octolgp.gp.learning import learn_hyperparameters
 from octolgp.mapping.cache import KernelCache
+from octolgp.mapping.correction import (
+    check_corrections,
+    overlapping_scans,
+    scan_extents,
+    transform_scan,
+)
 from octolgp.mapping.evidence import check_scan, gather_batch, step_evidence
 from octolgp.mapping.fit import LeafFit, LeafFitter, batch_bounds, fit_leaves
 from octolgp.mapping.grid import LeafGrid
@@ -373,6 +382,120 @@ class OnlineMap(MapReads):
         self.sink.on_update(update, self._change(fitted))
         return update
 
+    def correct_scans(self, corrections: Mapping[int, ArrayLike]) -> ScanUpdate:
+        """Move journaled scans by rigid transforms, as a pose graph's loop closure does.
+
+        The leaves that either version of a corrected scan touches are rebuilt from
+        every journaled scan whose extent reaches them, with the corrections applied,
+        and refitted; leaves left without evidence are removed. The result is the map
+        the corrected scans would have built from the start (with this map's
+        hyperparameters), at a cost that grows with the leaves and scans the
+        correction reaches, not with the mission. The journal then holds the
+        corrected scans; with a map file it is one transaction (a kill leaves the map
+        before or after the correction).
+
+        Parameters
+        ----------
+        corrections : mapping of int to array_like of shape (d+1, d+1)
+            Scan number (from 1, as in ``ScanUpdate.scan``) → rigid homogeneous
+            transform applied to that scan's world-frame origin and points.
+
+        Returns
+        -------
+        ScanUpdate
+            ``scan`` is the map's scan count; ``refit_leaves`` the rebuilt leaves,
+            ``removed_leaves`` those dropped.
+
+        Raises
+        ------
+        OctolgpError
+            On an unknown scan number, a matrix of the wrong size, non-finite or not
+            rigid, or a map without a journal (one made without a ``path`` and without
+            a memory budget keeps no scans); the map is then unchanged.
+        """
+        t0 = time.perf_counter()
+        transforms = check_corrections(corrections, self.n_scans, self.config.dim)
+        if self._file is None:
+            raise OctolgpError(
+                "correct_scans needs the scans' journal: make the map with a path "
+                "(OnlineMap(config, path=...)), which journals every scan"
+            )
+        storage = self._file
+        stages: dict[str, float] = {}
+        journal = list(enumerate(storage.scans(), start=1))
+        old = {i: scan for i, scan in journal if i in transforms}
+        new = {i: transform_scan(old[i], T) for i, T in transforms.items()}
+        for i, scan in new.items():  # a corrected scan must stay inside the map
+            try:
+                check_scan(scan, self.config, self.grid)
+            except OctolgpError as exc:
+                raise OctolgpError(
+                    f"corrections[{i}] moves the scan out of the map: {exc}"
+                ) from None
+        corrected = [(i, new.get(i, scan)) for i, scan in journal]
+        if self.hyperparameters is None:  # still buffering: only the journal moves
+            storage.correct([], [], list(new.items()))
+            self._buffer = [scan for _, scan in corrected]
+            self._provisional = None
+            return ScanUpdate(
+                scan=self.n_scans,
+                touched_leaves=0,
+                refit_leaves=0,
+                new_items=0,
+                pruned_leaves=0,
+                seconds=time.perf_counter() - t0,
+                buffered=True,
+                n_leaves=len(self.store),
+                memory_bytes=self.memory_bytes(),
+            )
+        hp = self.hyperparameters
+        with self._blas_limit():
+            # 1. the leaves either version of the corrected scans reaches
+            moved = [*old.values(), *new.values()]
+            reach = step_evidence(moved, self.grid, self._raw_config, lambda _: None, stages)
+            affected = sorted(reach.touched)
+            # 2. every scan whose extent reaches them, corrected, replayed in time order
+            scans = [scan for _, scan in corrected]
+            index = unpack_keys(np.asarray(affected, dtype=np.int64), self.config.dim)
+            near = overlapping_scans(scan_extents(scans, self.grid), index, self.grid)
+            replay = [scan for scan, ok in zip(scans, near, strict=True) if ok]
+            gathered, _, new_items = gather_batch(
+                replay, self.grid, self._raw_config, lambda _: None, CHUNK_BEAMS, stages
+            )
+            keys = [k for k in affected if k in gathered]
+            leaves = [gathered[k] for k in keys]
+            removed = [k for k in affected if k not in gathered and k in self.store]
+            del gathered
+            if self.kernel_cache is not None:  # rebuilt items are not the cached ones
+                self.kernel_cache.discard(affected)
+            t = time.perf_counter()
+            fits = fit_leaves(leaves, self.config, hp, self.kernel_cache, self._threads(leaves))
+            stages["fit"] = time.perf_counter() - t
+        # 3. the one write: store, then the file in one transaction, then the sink
+        t = time.perf_counter()
+        fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
+        self.store.apply(fitted, (), self.n_scans)
+        self.store.remove(removed)
+        written = storage.correct(fitted, removed, list(new.items()))
+        self.store.persisted(written)
+        self.store.trim()
+        stages["store"] = time.perf_counter() - t
+        update = ScanUpdate(
+            scan=self.n_scans,
+            touched_leaves=len(affected),
+            refit_leaves=len(keys),
+            new_items=new_items,
+            pruned_leaves=sum(f.leaf.pruned for f in fits),
+            seconds=time.perf_counter() - t0,
+            stages={**stages, "replayed_scans": float(len(replay))},
+            n_leaves=len(self.store),
+            memory_bytes=self.memory_bytes(),
+            repaired=self._count_repairs(fits),
+            removed_leaves=len(removed),
+        )
+        self.sink.on_update(update, self._change(fitted, tuple(removed)))
+        return update
+
     def insert_batch(
         self,
         scans: Iterable[Scan],
@@ -555,7 +678,9 @@ class OnlineMap(MapReads):
         self.repaired += repaired
         return repaired
 
-    def _change(self, leaves: Iterable[tuple[int, Leaf | None]]) -> MapChange:
+    def _change(
+        self, leaves: Iterable[tuple[int, Leaf | None]], removed: tuple[int, ...] = ()
+    ) -> MapChange:
         """What a sink sees of refitted leaves: boxes, voxel centres and values."""
         hp = self.hyperparameters
         grid = self.grid
@@ -576,6 +701,7 @@ class OnlineMap(MapReads):
             side=self.grid.side,
             signal_variance=1.0 if hp is None else hp.signal_variance,
             leaves=views(),
+            removed=removed,
         )
 
     # ------------------------------------------------------------------ reads

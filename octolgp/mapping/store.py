@@ -229,6 +229,18 @@ class MapStorage(LeafBacking, Protocol):
         """Write one step durably (all or nothing); returns the leaf keys written."""
         ...
 
+    def correct(
+        self,
+        leaves: Iterable[tuple[int, Leaf]],
+        removed: Iterable[int],
+        journal: Iterable[tuple[int, Scan]],
+    ) -> list[int]:
+        """Replace leaves, delete ``removed`` and rewrite journaled scans, all or nothing.
+
+        Returns the leaf keys written.
+        """
+        ...
+
     def close(self) -> None:
         """Release the file (a temporary spill file is deleted)."""
         ...
@@ -323,6 +335,16 @@ class LeafStore:
         self._leaves.move_to_end(key)
         self._keys.add(key)
         self._dirty.add(key)
+
+    def remove(self, keys: Iterable[int]) -> None:
+        """Drop leaves from the map (a correction left them without evidence)."""
+        for key in keys:  # one iteration per removed leaf
+            key = int(key)
+            old = self._leaves.pop(key, None)
+            if old is not None:
+                self._nbytes -= old.nbytes
+            self._keys.discard(key)
+            self._dirty.discard(key)
 
     def persisted(self, keys: Iterable[int]) -> None:
         """Mark leaves as written to the backing file."""

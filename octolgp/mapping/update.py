@@ -38,6 +38,9 @@ class ScanUpdate:
         Kernel matrices that were not numerically positive definite (coincident
         items, tiny noise) and were repaired by jitter during this step
         (:func:`octolgp.gp.regression.cholesky`); counted per map, never shared.
+    removed_leaves : int
+        Leaves dropped because no evidence is left in them (a pose correction moved
+        the scans that made them).
     """
 
     scan: int
@@ -51,3 +54,4 @@ class ScanUpdate:
     n_leaves: int = 0
     memory_bytes: int = 0
     repaired: int = 0
+    removed_leaves: int = 0

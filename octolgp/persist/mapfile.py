@@ -356,6 +356,31 @@ class MapFile:
             con.execute("UPDATE meta SET value=? WHERE key='n_scans'", (str(n_scans),))
         return written
 
+    def correct(
+        self,
+        leaves: Iterable[tuple[int, Leaf]],
+        removed: Iterable[int],
+        journal: Iterable[tuple[int, Scan]],
+    ) -> list[int]:
+        """Apply a pose correction in one transaction: a kill leaves the map before or after.
+
+        Replaces the journaled scans ``journal`` (by number) and the leaves ``leaves``,
+        and deletes the leaves ``removed``. Returns the leaf keys written.
+        """
+        written = []
+        with _Transaction(self._con) as con:
+            for i, s in journal:  # one row per corrected scan
+                row = _scan_row(i, s)
+                con.execute(
+                    "UPDATE scans SET dim=?, origin=?, points=?, max_range=?, stamp=? WHERE idx=?",
+                    (*row[1:], i),
+                )
+            con.executemany("DELETE FROM leaves WHERE key=?", ((int(k),) for k in removed))
+            for k, leaf in leaves:  # one row per rebuilt leaf
+                con.execute("INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf)))
+                written.append(k)
+        return written
+
     def finish(self) -> None:
         """Fold the write-ahead log into the file and leave it in rollback-journal mode."""
         self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")

@@ -64,6 +64,8 @@ class MapChange:
     leaves : iterable of LeafView
         The refitted leaves, produced as the sink iterates (read them once; a sink
         that ignores them costs nothing).
+    removed : tuple of int
+        Packed keys of leaves that left the map (a pose correction emptied them).
     """
 
     dim: int
@@ -71,6 +73,7 @@ class MapChange:
     side: int
     signal_variance: float
     leaves: Iterable[LeafView]
+    removed: tuple[int, ...] = ()
 
 
 class Sink(Protocol):

@@ -174,6 +174,8 @@ class RerunSink:
         rec.set_time("scan", sequence=update.scan)
         for leaf in change.leaves:  # one iteration per refitted leaf
             self._log_leaf(change, leaf)
+        for key in change.removed:  # one iteration per leaf that left the map
+            self._clear_leaf(change, key)
         rec.log("metrics/insert_seconds", rr.Scalars(update.seconds))
         rec.log("metrics/touched_leaves", rr.Scalars(float(update.touched_leaves)))
         rec.log("metrics/refit_leaves", rr.Scalars(float(update.refit_leaves)))
@@ -213,6 +215,18 @@ class RerunSink:
                     colors=_heat(leaf.var.astype(np.float64) / change.signal_variance),
                 ),
             )
+
+    def _clear_leaf(self, change: MapChange, key: int) -> None:
+        """A leaf that left the map: unknown grey in 2D (its quad is static), gone in 3D."""
+        path = f"world/map/leaves/{key}"
+        if change.dim == 2:
+            if path in self._tiles:
+                grey = _grey(np.full(change.side * change.side, 0.5))
+                self.rec.log(path, rr.Mesh3D.from_fields(albedo_texture_buffer=grey.tobytes()))
+        else:
+            self.rec.log(path, rr.Clear(recursive=False))
+        if self.uncertainty:
+            self.rec.log(f"world/map/variance/{key}", rr.Clear(recursive=False))
 
     def _log_tile(self, path: str, side: int, leaf: LeafView, prob: np.ndarray) -> None:
         """A 2D leaf as one textured quad at z = 0: a side × side grey image.
