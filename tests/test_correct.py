@@ -307,3 +307,32 @@ def test_a_3d_pose_line_is_a_rotation_and_a_translation() -> None:
     T = pose_matrix(np.array([1.0, 2.0, 3.0, 0.0, 0.0, half, half]), 3)  # 90° about z
     np.testing.assert_allclose(T[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
     np.testing.assert_array_equal(T[:3, 3], [1.0, 2.0, 3.0])
+
+
+def test_corrections_between_inserts_keep_the_scan_index_current(tmp_path: Path) -> None:
+    scans, corrections = drifted_mission()
+    with OnlineMap(config(), path=tmp_path / "m.octolgp") as m:
+        m.insert_scans(scans[:8])
+        m.correct_scans({6: corrections[6], 7: corrections[7]})
+        m.insert_scans(scans[8:])
+        m.correct_scans({i: corrections[i] for i in (8, 9, 10, 11, 12)})
+        m.correct_scans({3: pose(0.02, 0.0, 0.0)})
+        final = [
+            transform_scan(s, corrections[i]) if i in corrections else s
+            for i, s in enumerate(scans, 1)
+        ]
+        final[2] = transform_scan(final[2], pose(0.02, 0.0, 0.0))
+        fresh = OnlineMap(config())
+        fresh.insert_scans(final)
+        assert_same_map(m, fresh)
+
+
+def test_a_map_saved_from_memory_has_no_journal_to_correct(tmp_path: Path) -> None:
+    m = OnlineMap(config())
+    m.insert_scans(drifted_mission()[0][:4])
+    m.save(tmp_path / "saved.octolgp")
+    with OnlineMap.open(tmp_path / "saved.octolgp") as back:
+        before = snapshot(back)
+        with pytest.raises(OctolgpError, match="no journal"):
+            back.correct_scans({2: pose(0.1, 0.0, 0.0)})
+        assert snapshot(back) == before

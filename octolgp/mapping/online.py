@@ -163,6 +163,7 @@ class OnlineMap(MapReads):
         self._provisional: tuple[int, OnlineMap] | None = None  # a read's throw-away fit
         self._pool: ThreadPoolExecutor | None = None
         self._blas: ThreadpoolController | None = None
+        self._extents: np.ndarray | None = None  # journaled scans' key boxes, once corrected
         # Evidence is deduplicated per leaf (Leaf.with_evidence), in time order, so a
         # scan-level dedup would only make one-by-one and all-at-once insertion differ.
         self._raw_config = dataclasses.replace(
@@ -422,8 +423,12 @@ class OnlineMap(MapReads):
             )
         storage = self._file
         stages: dict[str, float] = {}
-        journal = list(enumerate(storage.scans(), start=1))
-        old = {i: scan for i, scan in journal if i in transforms}
+        old = storage.read_scans(list(transforms))
+        if len(old) != len(transforms):
+            raise OctolgpError(
+                f"map file {str(storage.path)!r} holds no journal of its scans (saved from "
+                "memory); only a map made with a path can be corrected"
+            )
         new = {i: transform_scan(old[i], T) for i, T in transforms.items()}
         for i, scan in new.items():  # a corrected scan must stay inside the map
             try:
@@ -432,11 +437,12 @@ class OnlineMap(MapReads):
                 raise OctolgpError(
                     f"corrections[{i}] moves the scan out of the map: {exc}"
                 ) from None
-        corrected = [(i, new.get(i, scan)) for i, scan in journal]
+        extents = self._journal_extents(storage)  # read before any write
         if self.hyperparameters is None:  # still buffering: only the journal moves
             storage.correct([], [], list(new.items()))
-            self._buffer = [scan for _, scan in corrected]
+            self._buffer = [new.get(i, scan) for i, scan in enumerate(self._buffer, start=1)]
             self._provisional = None
+            extents[np.array(list(new)) - 1] = scan_extents(list(new.values()), self.grid)
             return ScanUpdate(
                 scan=self.n_scans,
                 touched_leaves=0,
@@ -455,10 +461,12 @@ class OnlineMap(MapReads):
             reach = step_evidence(moved, self.grid, self._raw_config, lambda _: None, stages)
             affected = sorted(reach.touched)
             # 2. every scan whose extent reaches them, corrected, replayed in time order
-            scans = [scan for _, scan in corrected]
+            corrected_extents = extents.copy()
+            corrected_extents[np.array(list(new)) - 1] = scan_extents(list(new.values()), self.grid)
             index = unpack_keys(np.asarray(affected, dtype=np.int64), self.config.dim)
-            near = overlapping_scans(scan_extents(scans, self.grid), index, self.grid)
-            replay = [scan for scan, ok in zip(scans, near, strict=True) if ok]
+            near = np.flatnonzero(overlapping_scans(corrected_extents, index, self.grid)) + 1
+            journal = storage.read_scans(near.tolist())
+            replay = [new.get(i, journal[i]) for i in near.tolist()]
             gathered, _, new_items = gather_batch(
                 replay, self.grid, self._raw_config, lambda _: None, CHUNK_BEAMS, stages
             )
@@ -479,6 +487,7 @@ class OnlineMap(MapReads):
         written = storage.correct(fitted, removed, list(new.items()))
         self.store.persisted(written)
         self.store.trim()
+        extents[:] = corrected_extents
         stages["store"] = time.perf_counter() - t
         update = ScanUpdate(
             scan=self.n_scans,
@@ -647,9 +656,25 @@ class OnlineMap(MapReads):
             self._commit([k for k, _ in fitted], [], self.n_scans)
 
     # ------------------------------------------------------------------ plumbing
+    def _journal_extents(self, storage: MapStorage) -> np.ndarray:
+        """Each journaled scan's extent in voxel keys, (n_scans, 2, d), kept up to date.
+
+        Read from the journal once (the first correction), then extended as scans are
+        committed: a correction then reads only the scans that reach what it moves.
+        """
+        if self._extents is None or self._extents.shape[0] != self.n_scans:
+            boxes = [scan_extents([s], self.grid) for s in storage.scans()]
+            d = self.config.dim
+            self._extents = np.concatenate(boxes) if boxes else np.zeros((0, 2, d), np.int64)
+        return self._extents
+
     def _commit(self, keys: list[int], journal: list[tuple[int, Scan]], n_scans: int) -> None:
         """Set the scan count, make the step durable (map file, if any), trim RAM."""
         self.n_scans = n_scans
+        if self._extents is not None and journal:  # keep the correction index current
+            self._extents = np.concatenate(
+                [self._extents, scan_extents([s for _, s in journal], self.grid)]
+            )
         if self._file is not None:
             leaves = [(k, leaf) for k in keys if (leaf := self.store.get(k)) is not None]
             written = self._file.commit(leaves, journal, self.hyperparameters, n_scans)

@@ -219,6 +219,10 @@ class MapStorage(LeafBacking, Protocol):
         """The journaled scans with index > ``start``, in order."""
         ...
 
+    def read_scans(self, indices: list[int]) -> dict[int, Scan]:
+        """The journaled scans with these numbers (absent numbers are left out)."""
+        ...
+
     def commit(
         self,
         leaves: Iterable[tuple[int, Leaf]],

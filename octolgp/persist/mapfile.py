@@ -329,6 +329,23 @@ class MapFile:
         except (sqlite3.Error, ValueError, TypeError, ZeroDivisionError) as exc:
             raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
 
+    def read_scans(self, indices: list[int]) -> dict[int, Scan]:
+        """The journaled scans with these numbers (absent numbers are left out)."""
+        out: dict[int, Scan] = {}
+        try:
+            for lo in range(0, len(indices), 500):  # bounded IN lists
+                part = [int(i) for i in indices[lo : lo + 500]]
+                cur = self._con.execute(
+                    "SELECT idx, dim, origin, points, max_range, stamp FROM scans WHERE idx IN "
+                    f"({','.join('?' * len(part))})",
+                    part,
+                )
+                for row in cur:  # one scan per row
+                    out[int(row[0])] = _row_scan(row)
+        except (sqlite3.Error, ValueError, TypeError, ZeroDivisionError) as exc:
+            raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
+        return out
+
     # ------------------------------------------------------------------ writes
     def commit(
         self,
