@@ -25,6 +25,7 @@ exactly as the scans one by one would; summaries of consecutive runs compose
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -59,6 +60,10 @@ class VoxelObservations:
         Scans with a return in the voxel.
     frees : ndarray of int64, shape (n,)
         Scans whose free segments cross the voxel and hold no return in it.
+    weak_frees : ndarray of int64, shape (n,)
+        Those of them whose free segments cross it only within ``clear_margin`` of their
+        return (a beam grazing a wall): free evidence, but with newer evidence winning
+        they do not count towards forgetting a return. Zeros when ``clear_scans`` is 0.
     first_hit : ndarray of shape (n, d)
         The first return in the voxel (scan order, then beam order), metres, world
         frame; NaN where ``hits`` is 0.
@@ -66,10 +71,11 @@ class VoxelObservations:
         The K of the newer-evidence rule the summary below was made for; 0: static
         (the summary is then ``frees``, ``frees``, zeros and NaN, and unused).
     head_frees, tail_frees : ndarray of int64, shape (n,)
-        Scans seeing the voxel free before its first return and after its last
-        return (both ``frees`` where ``hits`` is 0).
+        Scans seeing the voxel free (not only weakly) before its first return and
+        after its last return (both ``frees - weak_frees`` where ``hits`` is 0).
     restart_hits : ndarray of int64, shape (n,)
-        Where a run of at least K scans seeing the voxel free lies between two of its
+        Where a run of at least K scans seeing the voxel (not only weakly) free lies
+        between two of its
         returns: the returns from the first one after the last such run on (their
         predecessors are forgotten); else 0.
     restart_hit : ndarray of shape (n, d)
@@ -79,12 +85,19 @@ class VoxelObservations:
     keys: IntArray
     hits: IntArray
     frees: IntArray
+    weak_frees: IntArray
     first_hit: np.ndarray
     clear_scans: int
     head_frees: IntArray
     tail_frees: IntArray
     restart_hits: IntArray
     restart_hit: np.ndarray
+
+    @property
+    def strong_frees(self) -> IntArray:
+        """Scans seeing the voxel free that count towards forgetting its returns."""
+        out: IntArray = self.frees - self.weak_frees
+        return out
 
     @property
     def n_voxels(self) -> int:
@@ -131,8 +144,13 @@ def _free_codes(
     scan: IntArray,
     resolution: float,
     tree_depth: int,
-) -> IntArray:
-    """Unique (scan, voxel) codes of the voxels the free segments pass through."""
+    near: np.ndarray | None = None,
+) -> tuple[IntArray, IntArray]:
+    """Unique (scan, voxel) codes of the voxels the free segments pass through.
+
+    Returns every such code, and those seen only by samples within ``near[b]`` metres of
+    their segment's end (per segment; ``None``: none).
+    """
     dim = origins.shape[1]
     step = resolution / SAMPLES_PER_VOXEL
     seg_len = np.linalg.norm(free_end - origins, axis=1)
@@ -142,6 +160,7 @@ def _free_codes(
     slope = (free_end - origins) / (resolution * np.maximum(seg_len, 1e-300))[:, None]
     offset = 1 << (tree_depth - 1)
     parts: list[IntArray] = []
+    near_parts: list[IntArray] = []
     ends = np.cumsum(n_samples)
     lo = 0
     while lo < seg_len.size:  # blocks of about BLOCK_SAMPLES samples
@@ -156,14 +175,23 @@ def _free_codes(
         for axis in range(dim):  # per axis: floor of the coordinate in voxels, packed
             u = start[beam, axis] + slope[beam, axis] * dist
             codes |= (np.floor(u).astype(np.int64) + offset) << (KEY_BITS * axis)
+        if near is not None:
+            close = seg_len[beam] - dist < near[beam]
+            near_parts.append(sorted_unique(codes[close]))
+            codes = codes[~close]
         keep = np.empty(codes.size, dtype=bool)  # consecutive samples in one voxel
-        keep[0] = True
+        if codes.size:
+            keep[0] = True
         np.not_equal(codes[1:], codes[:-1], out=keep[1:])
         parts.append(sorted_unique(codes[keep]))
         lo = hi
-    if not parts:
-        return np.zeros(0, dtype=np.int64)
-    return sorted_unique(np.concatenate(parts))
+    none = np.zeros(0, dtype=np.int64)
+    far = sorted_unique(np.concatenate(parts)) if parts else none
+    if not near_parts:
+        return far, none
+    close_codes = sorted_unique(np.concatenate(near_parts))
+    only = close_codes[~np.isin(close_codes, far, assume_unique=True)]
+    return sorted_unique(np.concatenate([far, only])), only
 
 
 def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
@@ -207,19 +235,28 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     hit_codes = all_codes[first_of_code]
     code_points = hit_points[first_of_code]
     seg = beams.has_seg
-    free_codes = _free_codes(origins[seg], beams.free_end[seg], scan[seg], res, depth)
+    k = config.clear_scans
+    near = np.where(beams.is_hit[seg], config.clear_margin, 0.0) if k else None
+    free_codes, weak_codes = _free_codes(
+        origins[seg], beams.free_end[seg], scan[seg], res, depth, near
+    )
     free_codes = free_codes[~np.isin(free_codes, hit_codes, assume_unique=True)]
+    weak_codes = weak_codes[~np.isin(weak_codes, hit_codes, assume_unique=True)]
     mask = (1 << (KEY_BITS * dim)) - 1
     hit_vox, hit_n = _unique_counts(hit_codes & mask)
     free_vox, free_n = _unique_counts(free_codes & mask)
+    weak_vox, weak_n = _unique_counts(weak_codes & mask)
     # the first return per voxel: codes ascend by scan, a stable sort keeps that order
     order = np.argsort(hit_codes & mask, kind="stable")
     ordered = (hit_codes & mask)[order]
     first = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
     obs = _combine(hit_vox, hit_n, free_vox, free_n, code_points[first], dim)
-    if config.clear_scans:
-        obs = _summarise(obs, hit_codes, code_points, free_codes, config.clear_scans)
-    return obs
+    if not k:
+        return obs
+    weak = np.zeros(obs.hits.size, dtype=np.int64)
+    weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
+    strong = free_codes[~np.isin(free_codes, weak_codes, assume_unique=True)]
+    return _summarise(dataclasses.replace(obs, weak_frees=weak), hit_codes, code_points, strong, k)
 
 
 def _combine(
@@ -248,7 +285,7 @@ def _static(
     """Observations without a newer-evidence summary (``clear_scans`` 0)."""
     zeros = np.zeros(hits.size, dtype=np.int64)
     none = np.full(first_hit.shape, np.nan)
-    return VoxelObservations(keys, hits, frees, first_hit, 0, frees, frees, zeros, none)
+    return VoxelObservations(keys, hits, frees, zeros, first_hit, 0, frees, frees, zeros, none)
 
 
 def _summarise(
@@ -275,15 +312,18 @@ def _summarise(
     n = voxel.size
     new_group = np.r_[True, voxel[1:] != voxel[:-1]] if n else np.zeros(0, dtype=bool)
     starts = np.flatnonzero(new_group)
-    group = np.cumsum(new_group) - 1  # index into obs (voxels ascending)
-    rank = np.arange(n) - starts[group]
-    size = np.diff(np.r_[starts, n])
+    run = np.cumsum(new_group) - 1  # the voxel's run of events
+    rank = np.arange(n) - starts[run]
+    # index into obs (voxels ascending; a voxel seen only weakly free has no events)
+    group = np.searchsorted(pack_keys(obs.keys), voxel)
+    size = np.zeros(obs.hits.size, dtype=np.int64)
+    size[group[starts]] = np.diff(np.r_[starts, n])
     hits_at = np.flatnonzero(is_hit)
     hit_group, hit_rank = group[hits_at], rank[hits_at]
     last_of_group = np.r_[hit_group[1:] != hit_group[:-1], True] if hits_at.size else hits_at > 0
     first_of_group = np.r_[True, hit_group[1:] != hit_group[:-1]] if hits_at.size else hits_at > 0
-    head = obs.frees.copy()
-    tail = obs.frees.copy()
+    head = obs.strong_frees.copy()
+    tail = obs.strong_frees.copy()
     head[hit_group[first_of_group]] = hit_rank[first_of_group]
     tail[hit_group[last_of_group]] = size[hit_group[last_of_group]] - 1 - hit_rank[last_of_group]
     # a run of >= K frees between two returns of a voxel: the later return restarts it
@@ -302,6 +342,7 @@ def _summarise(
         obs.keys,
         obs.hits,
         obs.frees,
+        obs.weak_frees,
         obs.first_hit,
         clear_scans,
         head,
@@ -340,6 +381,7 @@ def _aligned(obs: VoxelObservations, packed: IntArray, union: IntArray) -> Voxel
         unpack_keys(union, d),
         put(obs.hits, 0),
         put(obs.frees, 0),
+        put(obs.weak_frees, 0),
         put(obs.first_hit, np.nan),
         obs.clear_scans,
         put(obs.head_frees, 0),
@@ -362,8 +404,8 @@ def _then(a: VoxelObservations, b: VoxelObservations, dim: int) -> VoxelObservat
     k = a.clear_scans
     if not k:
         return _static(a.keys, hits, frees, first_hit)
-    head = np.where(has_a, a.head_frees, a.frees + b.head_frees)
-    tail = np.where(has_b, b.tail_frees, b.frees + a.tail_frees)
+    head = np.where(has_a, a.head_frees, a.strong_frees + b.head_frees)
+    tail = np.where(has_b, b.tail_frees, b.strong_frees + a.tail_frees)
     middle = has_a & has_b & (a.tail_frees + b.head_frees >= k)
     from_b = b.restart_hits > 0
     from_middle = ~from_b & middle
@@ -376,8 +418,9 @@ def _then(a: VoxelObservations, b: VoxelObservations, dim: int) -> VoxelObservat
         [b.restart_hit, b.first_hit, a.restart_hit],
         np.nan,
     )
+    weak = a.weak_frees + b.weak_frees
     return VoxelObservations(
-        a.keys, hits, frees, first_hit, k, head, tail, restart_hits, restart_hit
+        a.keys, hits, frees, weak, first_hit, k, head, tail, restart_hits, restart_hit
     )
 
 
@@ -423,8 +466,8 @@ def advance(
     at : ndarray of int, shape (p,)
         Each copy's voxel in ``obs``.
     evidence_cap : int
-        Counts saturate at this (the free count at ``max(K, cap)`` with the
-        newer-evidence rule, which needs to count to K).
+        Counts saturate at this; with the newer-evidence rule the free count
+        saturates at K instead (it counts towards forgetting).
 
     Returns
     -------
@@ -440,14 +483,16 @@ def advance(
         h = np.minimum(h0 + n_h, evidence_cap)
         f = np.minimum(f0 + n_f, evidence_cap)
         return VoxelState(h, f, position, replace, np.zeros(h.size, dtype=bool))
-    f_cap = max(k, evidence_cap)
     restart = obs.restart_hits[at] > 0
     first_on = seen & ~restart & ((h0 == 0) | (f0 + obs.head_frees[at] >= k))
     h = np.select([restart, first_on, seen], [obs.restart_hits[at], n_h, h0 + n_h], h0)
-    f = np.where(seen, obs.tail_frees[at], f0 + n_f)
-    cleared = f >= k
+    # while a voxel holds a return only strong frees count (towards forgetting it);
+    # without one every free counts; the free count saturates at K
+    on = seen | (h0 > 0)
+    f = np.select([seen, h0 > 0], [obs.tail_frees[at], f0 + obs.strong_frees[at]], f0 + n_f)
+    cleared = on & (f >= k)
     h = np.where(cleared, 0, np.minimum(h, evidence_cap))
-    f = np.minimum(f, f_cap)
+    f = np.minimum(f, k)
     replace = (restart | first_on) & ~cleared
     position = np.select(
         [(restart & replace)[:, None], (first_on & replace)[:, None]],

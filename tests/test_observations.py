@@ -145,14 +145,19 @@ def _one_by_one(
 
     state: dict[int, tuple[int, int, np.ndarray | None]] = {}
     for scan in scans:
-        obs = observe([scan], config)  # one scan: per voxel, a return or free
-        for key, h, p in zip(pack_keys(obs.keys).tolist(), obs.hits, obs.first_hit, strict=True):
+        obs = observe([scan], config)  # one scan: per voxel, a return, free, or weakly free
+        rows = zip(
+            pack_keys(obs.keys).tolist(), obs.hits, obs.weak_frees, obs.first_hit, strict=True
+        )
+        for key, h, weak, p in rows:
             hits, frees, pos = state.get(key, (0, 0, None))
             if h:
                 pos = p if hits == 0 else pos
                 hits, frees = min(hits + 1, cap), 0
-            else:
-                frees = min(frees + 1, max(clear, cap))
+            elif hits == 0:  # free or unknown: every free counts
+                frees = min(frees + 1, clear)
+            elif not weak:  # holding a return: a strong free steps towards forgetting it
+                frees = min(frees + 1, clear)
                 if frees >= clear:
                     hits, pos = 0, None
             state[key] = (hits, frees, pos)
@@ -206,3 +211,4 @@ def test_the_newer_evidence_summary_is_the_rule_applied_scan_by_scan(clear: int,
             if pos is not None:
                 np.testing.assert_array_equal(state[k][2], pos)
         assert any(v[0] == 0 and v[1] >= clear for v in truth.values())  # some were forgotten
+        assert whole.weak_frees.sum() > 0  # some frees were near their returns

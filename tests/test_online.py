@@ -431,6 +431,8 @@ def test_bad_queries_raise(points: object, field: str) -> None:
         ({"clear_scans": 256}, "clear_scans"),
         ({"clear_scans": 2.0}, "clear_scans"),
         ({"clear_scans": 3, "engine": "exact"}, "clear_scans"),
+        ({"clear_margin": -0.1}, "clear_margin"),
+        ({"clear_margin": float("inf")}, "clear_margin"),
     ],
 )
 def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:
@@ -442,6 +444,8 @@ def test_clear_scans_defaults_by_engine() -> None:
     assert MapConfig().clear_scans == 8
     assert MapConfig(online=OnlineConfig(engine="exact")).clear_scans == 0
     assert MapConfig(online=OnlineConfig(clear_scans=0)).clear_scans == 0
+    assert MapConfig(resolution=0.2).clear_margin == pytest.approx(1.0)
+    assert MapConfig(online=OnlineConfig(clear_margin=0.0)).clear_margin == 0.0
 
 
 def test_leaf_depth_beyond_tree_depth_is_refused() -> None:
