@@ -323,10 +323,11 @@ class OnlineConfig:
         8 cost 0.0015 against a static map (``BENCHMARKS.md``).
     clear_margin : float or None
         With ``clear_scans`` > 0: metres before a return within which its beam's free
-        segment does not count towards forgetting (it is still free evidence). A beam
-        grazing a wall crosses wall voxels just before its return; without the margin
-        long corridors seen at shallow angles erode. ``None`` (default): 5 voxels
-        (:attr:`MapConfig.clear_margin`).
+        segment does not count towards forgetting (it is still free evidence), as a beam
+        grazing a wall crosses wall voxels just before its return. No-return beams never
+        count towards forgetting either (a dark or glass surface returns nothing): on
+        FR079 they erased walls, held-out AUC 0.904 with them against 0.960 without.
+        ``None`` (default): 5 voxels (:attr:`MapConfig.clear_margin`).
     """
 
     leaf_depth: int | None = None

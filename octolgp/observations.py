@@ -62,8 +62,9 @@ class VoxelObservations:
         Scans whose free segments cross the voxel and hold no return in it.
     weak_frees : ndarray of int64, shape (n,)
         Those of them whose free segments cross it only within ``clear_margin`` of their
-        return (a beam grazing a wall): free evidence, but with newer evidence winning
-        they do not count towards forgetting a return. Zeros when ``clear_scans`` is 0.
+        return (a beam grazing a wall) or only on no-return beams (a dark or glass
+        surface also gives none): free evidence, but with newer evidence winning they do
+        not count towards forgetting a return. Zeros when ``clear_scans`` is 0.
     first_hit : ndarray of shape (n, d)
         The first return in the voxel (scan order, then beam order), metres, world
         frame; NaN where ``hits`` is 0.
@@ -236,7 +237,8 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     code_points = hit_points[first_of_code]
     seg = beams.has_seg
     k = config.clear_scans
-    near = np.where(beams.is_hit[seg], config.clear_margin, 0.0) if k else None
+    # weak: within clear_margin of the beam's return, or anywhere on a no-return beam
+    near = np.where(beams.is_hit[seg], config.clear_margin, np.inf) if k else None
     free_codes, weak_codes = _free_codes(
         origins[seg], beams.free_end[seg], scan[seg], res, depth, near
     )

@@ -212,3 +212,34 @@ def test_the_newer_evidence_summary_is_the_rule_applied_scan_by_scan(clear: int,
                 np.testing.assert_array_equal(state[k][2], pos)
         assert any(v[0] == 0 and v[1] >= clear for v in truth.values())  # some were forgotten
         assert whole.weak_frees.sum() > 0  # some frees were near their returns
+
+
+def test_frees_near_a_return_are_weak() -> None:
+    """Weak: within clear_margin of the beam's own return, or on a no-return beam."""
+    from octolgp.config import OnlineConfig
+    from octolgp.geometry.keys import pack_keys
+
+    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(clear_scans=4, clear_margin=0.35))
+    # beam 0 ends at x = 3.05 (a return); beam 1 passes just above it to a return at 5.05;
+    # beam 2 is a no-return along y = -0.15
+    scan = Scan(
+        origin=[0.05, 0.05], points=[[3.05, 0.05], [5.05, 0.15], [6.05, -0.15]], max_range=6.0
+    )
+    obs = observe([scan], config)
+    weak = {int(k): int(w) for k, w in zip(pack_keys(obs.keys), obs.weak_frees, strict=True)}
+    frees = {int(k): int(f) for k, f in zip(pack_keys(obs.keys), obs.frees, strict=True)}
+
+    def key(x: float, y: float) -> int:
+        return int(pack_keys((np.floor(np.array([[x, y]]) / 0.1) + (1 << 15)).astype(int))[0])
+
+    assert frees[key(1.05, 0.05)] == 1
+    assert weak[key(1.05, 0.05)] == 0  # far from any return
+    assert frees[key(2.75, 0.05)] == 1
+    assert weak[key(2.75, 0.05)] == 1  # 0.3 m before its return
+    assert weak[key(4.05, 0.15)] == 0  # beam 1, far from its return
+    assert weak[key(4.95, 0.15)] == 1  # beam 1, just before its return
+    assert frees[key(4.05, -0.05)] == 1
+    assert weak[key(4.05, -0.05)] == 1  # beam 2, a no-return
+    static = observe([scan], MapConfig(dim=2, resolution=0.1, online=OnlineConfig(clear_scans=0)))
+    assert static.weak_frees.sum() == 0
+    np.testing.assert_array_equal(static.frees, obs.frees)  # weak or not, a free is a free
