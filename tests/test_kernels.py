@@ -20,7 +20,7 @@ from scipy.spatial.transform import Rotation
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern
 
 import octolgp.gp.kernels as kernels_module
-from octolgp.gp.kernels import covariance_with_grad, item_covariance, matern32, node_distances
+from octolgp.gp.kernels import BlockWorkspace, covariance_with_grad, item_covariance, matern32
 from octolgp.gp.quadrature import (
     QuadratureSet,
     clenshaw_curtis,
@@ -404,7 +404,7 @@ def test_covariance_with_grad_matches_finite_differences(
     """∂K/∂log l against central differences with the node layout held fixed."""
     (points, seg_start, seg_end), _ = sets
     A = quadrature_set(points, seg_start, seg_end, 0.5 * length_scale)
-    K, dK = covariance_with_grad(A, node_distances(A), length_scale, signal_variance)
+    K, dK = covariance_with_grad(A, length_scale, signal_variance)
     np.testing.assert_allclose(
         K, item_covariance(A, A, length_scale, signal_variance), rtol=1e-12, atol=1e-14
     )
@@ -412,3 +412,80 @@ def test_covariance_with_grad_matches_finite_differences(
     Kp = item_covariance(A, A, length_scale * np.exp(h), signal_variance)
     Km = item_covariance(A, A, length_scale * np.exp(-h), signal_variance)
     np.testing.assert_allclose(dK, (Kp - Km) / (2 * h), rtol=1e-6, atol=1e-8 * signal_variance)
+
+
+# --------------------------------------------------------------------------- bounded blocks
+
+
+def _previous_covariance_with_grad(
+    A: QuadratureSet, length_scale: float, signal_variance: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The computation before #14 bounded it: whole ``(N, N)`` node matrices, dense ``W``."""
+    ends = np.append(A.starts[1:], A.n_nodes)
+    W = np.zeros((A.n_items, A.n_nodes))
+    item = np.repeat(np.arange(A.n_items), ends - A.starts)
+    W[item, np.arange(A.n_nodes)] = A.weights
+    a = cdist(A.nodes, A.nodes) * (np.sqrt(3.0) / length_scale)
+    e = np.exp(-a)
+    return W @ (signal_variance * (1 + a) * e) @ W.T, W @ (signal_variance * a * a * e) @ W.T
+
+
+def _mixed_set(seed: int, n_points: int, n_segments: int, spacing: float) -> QuadratureSet:
+    rng = np.random.default_rng(seed)
+    return quadrature_set(
+        rng.uniform(-3, 3, (n_points, 2)),
+        rng.uniform(-3, 3, (n_segments, 2)),
+        rng.uniform(-3, 3, (n_segments, 2)),
+        spacing,
+    )
+
+
+@pytest.mark.parametrize("chunk", [1, 50, 700, 1 << 19])
+@pytest.mark.parametrize("shape", [(0, 9), (12, 0), (30, 25)])
+def test_covariance_with_grad_in_blocks_equals_previous_whole_computation(
+    monkeypatch: pytest.MonkeyPatch, chunk: int, shape: tuple[int, int]
+) -> None:
+    """Blocked, upper triangle mirrored, one workspace for all: equal to rounding.
+
+    ``chunk == 1`` makes a block of every item; 50 and 700 cut runs of points and
+    of segments in several places; ``1 << 19`` is the default (one block here).
+    """
+    monkeypatch.setattr(kernels_module, "_CHUNK", chunk)
+    work = BlockWorkspace()
+    for seed in range(3):
+        A = _mixed_set(seed, *shape, spacing=0.3)
+        K_ref, dK_ref = _previous_covariance_with_grad(A, 0.7, 1.9)
+        for w in (None, work):
+            K, dK = covariance_with_grad(A, 0.7, 1.9, w)
+            np.testing.assert_allclose(K, K_ref, rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(dK, dK_ref, rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(K, K.T, rtol=1e-13, atol=1e-16)
+
+
+@pytest.mark.parametrize("chunk", [1, 50, 1 << 19])
+def test_item_covariance_with_a_workspace_is_bit_identical(
+    monkeypatch: pytest.MonkeyPatch, chunk: int
+) -> None:
+    """Reused node blocks change no bit of the result, in any number of blocks."""
+    monkeypatch.setattr(kernels_module, "_CHUNK", chunk)
+    A, B = _mixed_set(0, 20, 15, 0.3), _mixed_set(1, 7, 11, 0.3)
+    work = BlockWorkspace()
+    for X, Y in ((A, B), (B, A), (A, A), (points_set(A.nodes[:13]), B)):
+        np.testing.assert_array_equal(
+            item_covariance(X, Y, 0.8, 1.3, work), item_covariance(X, Y, 0.8, 1.3)
+        )
+
+
+def test_block_workspace_holds_three_blocks_and_grows_only_when_needed() -> None:
+    work = BlockWorkspace()
+    a, e, g = work.blocks(3, 4)
+    assert a.shape == e.shape == g.shape == (3, 4)
+    assert all(x.flags.c_contiguous for x in (a, e, g))
+    assert not np.shares_memory(a, e)
+    assert not np.shares_memory(e, g)
+    assert work._buffer.shape == (3, kernels_module._CHUNK)
+    work.blocks(100, 50)
+    assert work._buffer.shape == (3, kernels_module._CHUNK)  # no new buffer for a smaller block
+    big = kernels_module._CHUNK + 1
+    assert work.blocks(1, big)[0].shape == (1, big)  # one item's nodes beyond a block
+    assert work._buffer.shape == (3, big)

@@ -5,7 +5,10 @@ log (``../shared/data/fr079``; skipped with a note when absent), insert one scan
 default 2D map at 0.1 m (``MapConfig(dim=2, resolution=0.1, memory_budget_mb=B)``, the
 hyperparameters learnt as a user gets them) and read the RSS (the *base*: import plus a
 one-scan warm-up), then insert the first ``--scans`` scans and read the peak RSS
-(``ru_maxrss``). The target: peak <= base + 1.5 x budget.
+(``ru_maxrss``). The target: peak <= base + 1.5 x budget. The *learnt* columns read
+the RSS and the peak right after the scan that ends the learning phase (the
+hyperparameters learnt on the buffered ``learn_scans`` scans, which are then fitted),
+to tell that one-off step from the growth of the map after it.
 
     .venv/bin/python tools/bench_budget_rss.py --scans 1500 --budgets 64,none
 """
@@ -39,16 +42,31 @@ def child(scans: int, budget: str) -> None:
     m = OnlineMap(MapConfig(dim=2, resolution=0.1, memory_budget_mb=b))
     m.insert_scan(next(stream))
     base = rss_mb()
+    learnt: tuple[float, float] | None = None
     t = time.perf_counter()
     for i, s in enumerate(stream, start=2):  # one scan at a time, never a list
         m.insert_scan(s)
+        if learnt is None and not m.provisional:
+            learnt = (rss_mb(), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3)
         if i >= scans:
             break
     seconds = time.perf_counter() - t
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
     leaves_mb = m.memory_bytes() / 1e6
     m.close()
-    print(json.dumps({"base": base, "peak": peak, "leaves_mb": leaves_mb, "seconds": seconds}))
+    learnt_rss, learnt_peak = learnt if learnt is not None else (float("nan"), float("nan"))
+    print(
+        json.dumps(
+            {
+                "base": base,
+                "peak": peak,
+                "learnt_rss": learnt_rss,
+                "learnt_peak": learnt_peak,
+                "leaves_mb": leaves_mb,
+                "seconds": seconds,
+            }
+        )
+    )
 
 
 def main() -> int:
@@ -70,9 +88,9 @@ def main() -> int:
     print()
     print(
         "| budget MB | base RSS MB (import + 1 scan) | peak RSS MB | peak - base | "
-        "target (1.5 x budget) | resident leaves MB | s |"
+        "target (1.5 x budget) | learnt: RSS / peak so far MB | resident leaves MB | s |"
     )
-    print("|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|")
     for budget in args.budgets.split(","):
         out = subprocess.run(
             [sys.executable, __file__, "--child", str(args.scans), budget],
@@ -84,7 +102,8 @@ def main() -> int:
         target = "-" if budget == "none" else f"<= {1.5 * float(budget):.0f}"
         print(
             f"| {budget} | {r['base']:.0f} | {r['peak']:.0f} | {r['peak'] - r['base']:.0f} | "
-            f"{target} | {r['leaves_mb']:.1f} | {r['seconds']:.0f} |",
+            f"{target} | {r['learnt_rss']:.0f} / {r['learnt_peak']:.0f} | "
+            f"{r['leaves_mb']:.1f} | {r['seconds']:.0f} |",
             flush=True,
         )
     return 0

@@ -12,7 +12,7 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve
 from scipy.special import log_ndtr
 
 from octolgp.config import Hyperparameters
-from octolgp.gp.kernels import covariance_with_grad, node_distances
+from octolgp.gp.kernels import BlockWorkspace, covariance_with_grad
 from octolgp.gp.quadrature import QuadratureSet
 from octolgp.gp.regression import factor
 from octolgp.scan import FloatArray
@@ -35,7 +35,7 @@ def _noisy_factor(Kf: FloatArray, sn2: float) -> FloatArray | None:
 
 
 def log_marginal_likelihood(
-    items: QuadratureSet, y: FloatArray, log_theta: FloatArray, R: FloatArray | None = None
+    items: QuadratureSet, y: FloatArray, log_theta: FloatArray, work: BlockWorkspace | None = None
 ) -> tuple[float, FloatArray]:
     """Log marginal likelihood and its gradient in log-parameters.
 
@@ -45,8 +45,9 @@ def log_marginal_likelihood(
     y : ndarray of shape (n,)
     log_theta : ndarray of shape (3,)
         ``log`` of (length_scale, signal_variance, noise_variance).
-    R : ndarray of shape (N, N), optional
-        Node distances (:func:`octolgp.gp.kernels.node_distances`), to reuse.
+    work : BlockWorkspace, optional
+        Node blocks for :func:`octolgp.gp.kernels.covariance_with_grad`, to reuse
+        across calls.
 
     Returns
     -------
@@ -56,8 +57,7 @@ def log_marginal_likelihood(
         ``½ tr((ααᵀ − K⁻¹) ∂K/∂θ_j)`` (R&W eq. 5.9).
     """
     ell, sf2, sn2 = np.exp(log_theta)
-    R = node_distances(items) if R is None else R
-    Kf, dK_dlogl = covariance_with_grad(items, R, float(ell), float(sf2))
+    Kf, dK_dlogl = covariance_with_grad(items, float(ell), float(sf2), work)
     L = _noisy_factor(Kf, float(sn2))
     if L is None:
         return -np.inf, np.zeros(3)
@@ -76,25 +76,25 @@ def log_marginal_likelihood(
 
 
 def loo_predictions(
-    items: QuadratureSet, y: FloatArray, hp: Hyperparameters
+    items: QuadratureSet, y: FloatArray, hp: Hyperparameters, work: BlockWorkspace | None = None
 ) -> tuple[FloatArray, FloatArray]:
     """Closed-form leave-one-out predictive means and variances.
 
     R&W eq. (5.12): ``μ_i = y_i − [K⁻¹y]_i / [K⁻¹]_ii`` and ``σ_i² = 1 / [K⁻¹]_ii``,
     with ``K`` including the noise, so ``σ_i²`` is the predictive variance of a noisy
-    observation of item ``i``.
+    observation of item ``i``. ``work``: node blocks to reuse.
 
     Returns
     -------
     mean, var : ndarray of shape (n,)
     """
-    L, weights, _ = factor(items, y, hp)
+    L, weights, _ = factor(items, y, hp, work)
     diag = np.diag(cho_solve((L, True), np.eye(y.shape[0]), check_finite=False))
     return y - weights / diag, 1.0 / diag
 
 
 def loo_log_predictive(
-    items: QuadratureSet, y: FloatArray, params: FloatArray, R: FloatArray | None = None
+    items: QuadratureSet, y: FloatArray, params: FloatArray, work: BlockWorkspace | None = None
 ) -> tuple[float, FloatArray]:
     """Summed LOO log predictive probability of PLSC and its gradient (R&W §6.5).
 
@@ -110,8 +110,8 @@ def loo_log_predictive(
     params : ndarray of shape (5,)
         ``log`` length_scale, ``log`` signal_variance, ``log`` noise_variance,
         ``alpha``, ``beta``.
-    R : ndarray of shape (N, N), optional
-        Node distances, to reuse.
+    work : BlockWorkspace, optional
+        Node blocks, to reuse across calls.
 
     Returns
     -------
@@ -120,8 +120,7 @@ def loo_log_predictive(
     """
     ell, sf2, sn2 = np.exp(params[:3])
     alpha, beta = float(params[3]), float(params[4])
-    R = node_distances(items) if R is None else R
-    Kf, dK_dlogl = covariance_with_grad(items, R, float(ell), float(sf2))
+    Kf, dK_dlogl = covariance_with_grad(items, float(ell), float(sf2), work)
     L = _noisy_factor(Kf, float(sn2))
     if L is None:
         return -np.inf, np.zeros(5)

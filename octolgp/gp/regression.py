@@ -15,7 +15,7 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve, solve_triangular
 
 from octolgp.config import Hyperparameters
 from octolgp.errors import OctolgpError
-from octolgp.gp.kernels import item_covariance
+from octolgp.gp.kernels import BlockWorkspace, item_covariance
 from octolgp.gp.quadrature import QuadratureSet, points_set
 from octolgp.scan import FloatArray
 
@@ -93,13 +93,14 @@ def cholesky(K: FloatArray) -> tuple[FloatArray, bool]:
 
 
 def factor(
-    items: QuadratureSet, y: FloatArray, hp: Hyperparameters
+    items: QuadratureSet, y: FloatArray, hp: Hyperparameters, work: BlockWorkspace | None = None
 ) -> tuple[FloatArray, FloatArray, bool]:
     """Cholesky factor of ``K + σn² I`` and the weights ``(K + σn² I)⁻¹ y`` (Alg. 2.1 l. 2-3).
 
     The third value tells whether the factor needed a jitter (:func:`cholesky`).
+    ``work``: node blocks for :func:`~octolgp.gp.kernels.item_covariance`, to reuse.
     """
-    K = item_covariance(items, items, hp.length_scale, hp.signal_variance)
+    K = item_covariance(items, items, hp.length_scale, hp.signal_variance, work)
     K[np.diag_indices_from(K)] += hp.noise_variance
     L, repaired = cholesky(K)
     if L.shape[0] == 0:  # no items: the GP is its prior
