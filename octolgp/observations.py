@@ -238,7 +238,8 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     seg = beams.has_seg
     k = config.clear_scans
     # weak: within clear_margin of the beam's return, or anywhere on a no-return beam
-    near = np.where(beams.is_hit[seg], config.clear_margin, np.inf) if k else None
+    margin = max(config.clear_margin - config.free_margin, 0.0)  # from the segment's end
+    near = np.where(beams.is_hit[seg], margin, np.inf) if k else None
     free_codes, weak_codes = _free_codes(
         origins[seg], beams.free_end[seg], scan[seg], res, depth, near
     )

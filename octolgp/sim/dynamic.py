@@ -282,12 +282,20 @@ class DynamicScene:
         out: NDArray[np.bool_] = np.any(np.all(inside, axis=2), axis=1)
         return out
 
-    def free_voxels(self, scan: int, resolution: float, margin: float | None = None) -> IntArray:
+    def free_voxels(
+        self,
+        scan: int,
+        resolution: float,
+        margin: float | None = None,
+        no_returns: bool = True,
+    ) -> IntArray:
         """Voxels scan ``scan`` sees free: its beams' free parts, sampled every quarter voxel.
 
         A beam's free part runs from the origin to ``margin`` short of its return (to
         ``max_range`` for a no-return): the ground truth of "this scan looked through
-        the voxel", independent of any map.
+        the voxel", independent of any map. ``no_returns=False`` leaves no-return beams
+        out (octolgp's forgetting counts only beams with a return, farther than
+        ``OnlineConfig.clear_margin`` from it).
 
         Parameters
         ----------
@@ -308,9 +316,11 @@ class DynamicScene:
         delta = s.points - s.origin
         length = np.linalg.norm(delta, axis=1)
         free_len = np.where(owners == NO_RETURN, length, np.maximum(length - m, 0.0))
+        if not no_returns:
+            free_len = np.where(owners == NO_RETURN, -1.0, free_len)
         unit = delta / np.maximum(length, 1e-300)[:, None]
         step = resolution / 4.0
-        counts = np.floor(free_len / step).astype(np.int64) + 1
+        counts = np.where(free_len < 0, 0, np.floor(free_len / step).astype(np.int64) + 1)
         beam = np.repeat(np.arange(length.size), counts)
         starts = np.cumsum(counts) - counts
         along = (np.arange(beam.size) - starts[beam]) * step
