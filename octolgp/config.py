@@ -316,11 +316,13 @@ class OnlineConfig:
         read free after the robot has looked through them this many times and a new
         object registers with its first return (:mod:`octolgp.observations`). ``0``:
         a static world, every return and free observation kept for good. ``None``
-        (default): 8 with the lattice engine (:attr:`MapConfig.clear_scans`), 0 with
-        the exact one, which keeps the first evidence per voxel. In 0..255. OctoMap's
-        default probabilities clear a voxel that was occupied for long after 9 scans see
-        it free; on the Intel log (held-out AUC, 3 splits) 3 cost 0.012, 5 cost 0.005,
-        8 cost 0.0015 against a static map (``BENCHMARKS.md``).
+        (default): 5 with the lattice engine (:attr:`MapConfig.clear_scans`), 0 with
+        the exact one, which keeps the first evidence per voxel. In 0..255. With 5 a
+        moved crate clears in 6 scans and an opened door in 15.5 where OctoMap's default
+        probabilities take 8 and 17 (``tools/bench_dynamic.py``), and held-out AUC is
+        above the static map's on Intel (0.9862 against 0.9848) and FR079 (0.9559
+        against 0.9501; 8 gives 0.9631 but clears a scan or two later than OctoMap;
+        ``BENCHMARKS.md``).
     clear_margin : float or None
         With ``clear_scans`` > 0: metres before a return within which its beam's free
         segment does not count towards forgetting (it is still free evidence), as a beam
@@ -393,7 +395,7 @@ class OnlineConfig:
                 )
 
 
-DEFAULT_CLEAR_SCANS = 8
+DEFAULT_CLEAR_SCANS = 5
 """The lattice engine's default ``clear_scans`` (see :class:`OnlineConfig`)."""
 
 CLEAR_MARGIN_VOXELS = 5
@@ -498,7 +500,7 @@ class MapConfig:
     def clear_scans(self) -> int:
         """Scans seeing a voxel free that forget its returns (``online.clear_scans``).
 
-        Default: 8 with the lattice engine, 0 (a static world) with the exact one.
+        Default: 5 with the lattice engine, 0 (a static world) with the exact one.
         """
         if self.online.clear_scans is not None:
             return self.online.clear_scans

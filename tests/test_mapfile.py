@@ -255,7 +255,7 @@ def test_a_map_file_from_before_newer_evidence_won_reopens_static(tmp_path: Path
     path = tmp_path / "static.octolgp"
     with OnlineMap(CONFIG, path=path) as m:
         m.insert_scans(_scans()[:3])
-        assert m.config.clear_scans == 8
+        assert m.config.clear_scans == 5
     with OnlineMap.open(path) as m:  # a file of today keeps its rule and its config
         assert m.config == CONFIG
     con = sqlite3.connect(path)

@@ -441,7 +441,7 @@ def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:
 
 
 def test_clear_scans_defaults_by_engine() -> None:
-    assert MapConfig().clear_scans == 8
+    assert MapConfig().clear_scans == 5
     assert MapConfig(online=OnlineConfig(engine="exact")).clear_scans == 0
     assert MapConfig(online=OnlineConfig(clear_scans=0)).clear_scans == 0
     assert MapConfig(resolution=0.2).clear_margin == pytest.approx(1.0)
