@@ -132,6 +132,23 @@ def test_cli_eval_writes_table_roc_and_json(tmp_path: Path, capsys) -> None:
     assert set(data["summary"]) == {"batch", "grid"}
 
 
+def test_cli_eval_hilbert_protocol(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "ev"
+    argv = ["eval", str(INTEL20), "--seeds", "2", "--methods", "grid", "--quiet"]
+    assert main([*argv, "--protocol", "hilbert", "--resolution", "0.2", "--out", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "hilbert protocol" in table
+    assert "worst split" in table
+    data = json.loads((out / "results.json").read_text())
+    assert data["summary"]["grid"]["auc_worst"] <= data["summary"]["grid"]["auc_mean"]
+    # more free points than the endpoint protocol: max(1, int(d/2)) per return
+    endpoint = tmp_path / "ep"
+    assert main([*argv, "--resolution", "0.2", "--out", str(endpoint)]) == 0
+    capsys.readouterr()
+    points = json.loads((endpoint / "results.json").read_text())["n_points"]
+    assert sum(data["n_points"]) > sum(points)
+
+
 def _exit_code(argv: list[str]) -> int:
     """``main``'s status, whether it returns it or argparse raises SystemExit."""
     try:
@@ -147,6 +164,7 @@ def _exit_code(argv: list[str]) -> int:
         (["--fraction", "1.0"], "--fraction"),
         (["--short", "nan"], "--short"),
         (["--seeds", "0"], "--seeds"),
+        (["--protocol", "grid"], "--protocol"),
     ],
 )
 def test_cli_eval_bad_input_exits_2_with_one_line(

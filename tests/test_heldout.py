@@ -9,7 +9,14 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from octolgp.bench.heldout import auc, evaluate, heldout_points, heldout_split, unknown_fraction
+from octolgp.bench.heldout import (
+    auc,
+    evaluate,
+    heldout_points,
+    heldout_split,
+    hilbert_points,
+    unknown_fraction,
+)
 from octolgp.errors import OctolgpError
 from octolgp.scan import Scan
 
@@ -311,3 +318,73 @@ def test_heldout_end_to_end_with_ogm() -> None:
     points, labels = heldout_points([scans[i] for i in test], rng=0, resolution=0.1)
     result = evaluate(grid, points, labels)
     assert result["auc"] > 0.95
+
+
+# ---------------------------------------------------------------- the hilbert protocol
+def _fan(origin: tuple[float, float], ranges: list[float], max_range: float = 8.0) -> Scan:
+    ang = np.linspace(0.0, np.pi, len(ranges))
+    o = np.asarray(origin)
+    pts = o + np.asarray(ranges)[:, None] * np.c_[np.cos(ang), np.sin(ang)]
+    return Scan(origin=o, points=pts, max_range=max_range)
+
+
+def test_hilbert_points_counts_ranges_and_labels() -> None:
+    ranges = [0.6, 1.9, 2.0, 5.3, 8.0, 7.99]  # 8.0: a no-return
+    scans = [_fan((0.0, 0.0), ranges), _fan((1.0, -1.0), [3.0, 0.0, 4.5])]  # 0.0: on the sensor
+    points, labels = hilbert_points(scans, 0, short=0.1)
+    returns = [r for r in ranges if 0 < r < 8.0] + [3.0, 4.5]
+    n_free = [max(1, int(d / 2)) for d in returns]
+    assert int(labels.sum()) == len(returns)
+    assert int((labels == 0).sum()) == sum(n_free)  # 1, 1, 1, 2, 3 | 1, 2
+    # occupied first (the endpoints), then the free points, beam by beam
+    occupied = points[labels == 1]
+    ends = np.concatenate([s.points for s in scans])
+    length = np.concatenate([np.linalg.norm(s.points - s.origin, axis=1) for s in scans])
+    keep = (length > 0) & (length < 8.0)
+    np.testing.assert_array_equal(occupied, ends[keep])
+    # each free point lies on its beam, in [0, d - 0.1]
+    free = points[labels == 0]
+    origins = np.concatenate([np.repeat(s.origin[None], len(s), axis=0) for s in scans])[keep]
+    beam = np.repeat(np.arange(keep.sum()), n_free)
+    along = np.linalg.norm(free - origins[beam], axis=1)
+    assert (along <= length[keep][beam] - 0.1 + 1e-12).all()
+    direction = (ends[keep] - origins) / length[keep][:, None]
+    rel = free - origins[beam]
+    cross = direction[beam, 0] * rel[:, 1] - direction[beam, 1] * rel[:, 0]
+    np.testing.assert_allclose(cross, 0.0, atol=1e-12)
+
+
+def test_hilbert_points_are_seeded_and_spread_uniformly() -> None:
+    scan = _fan((0.0, 0.0), [6.0] * 400, max_range=10.0)  # 3 free points per beam
+    a, la = hilbert_points([scan], 7)
+    b, lb = hilbert_points([scan], 7)
+    c, _ = hilbert_points([scan], 8)
+    np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(la, lb)
+    assert not np.array_equal(a, c)
+    along = np.linalg.norm(a[la == 0], axis=1) / 5.9  # uniform on [0, 1]
+    assert along.size == 1200
+    assert abs(along.mean() - 0.5) < 0.03
+    assert abs(np.quantile(along, 0.25) - 0.25) < 0.04
+
+
+def test_hilbert_points_rejects_bad_input() -> None:
+    with pytest.raises(OctolgpError, match="no scans"):
+        hilbert_points([], 0)
+    with pytest.raises(OctolgpError, match="short"):
+        hilbert_points([_fan((0.0, 0.0), [1.0])], 0, short=-1.0)
+
+
+def test_eval_takes_the_hilbert_protocol() -> None:
+    from octolgp import MapConfig
+    from octolgp.bench.evaluation import evaluate_log
+
+    rng = np.random.default_rng(0)
+    scans = [_fan((x, 0.0), list(3.0 + rng.uniform(0, 0.1, 60))) for x in np.linspace(0, 2, 12)]
+    config = MapConfig(dim=2, resolution=0.2)
+    with pytest.raises(OctolgpError, match="protocol"):
+        evaluate_log(scans, config, seeds=1, methods=["grid"], protocol="nope")
+    report = evaluate_log(scans, config, seeds=2, run=2, methods=["grid"], protocol="hilbert")
+    summary = report.summary()["grid"]
+    assert summary["auc_worst"] <= summary["auc_mean"]
+    assert "worst split" in report.table()

@@ -158,13 +158,17 @@ def cmd_eval(args: argparse.Namespace) -> int:
         downsample=args.downsample,
         progress=progress,
         fast_online=args.fast_online,
+        protocol=args.protocol,
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     name = Path(args.scans).name
     plot_roc(report, out / "roc.png", title=f"{name}: held-out scans")
     (out / "results.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
-    table = f"{name}, {len(scan_list)} scans, resolution {args.resolution} m: " + report.table()
+    table = (
+        f"{name}, {len(scan_list)} scans, resolution {args.resolution} m, "
+        f"{args.protocol} protocol: " + report.table()
+    )
     (out / "table.md").write_text(table + "\n")
     print(table)
     print(f"\nwrote {out}/roc.png, {out}/results.json, {out}/table.md")

@@ -263,6 +263,13 @@ def make_parser() -> argparse.ArgumentParser:
     ev.add_argument("--short", type=float, default=0.1, help="metres kept free before each hit")
     ev.add_argument("--leave-one-out", action="store_true", help="hold out each scan once instead")
     ev.add_argument(
+        "--protocol",
+        choices=["endpoint", "hilbert"],
+        default="endpoint",
+        help="test points: endpoint (each hit, one free point per beam) or hilbert (each "
+        "return's hit and max(1, int(d/2)) free points along it, Hilbert maps' protocol)",
+    )
+    ev.add_argument(
         "--methods",
         default="online,batch,grid,octomap",
         help="comma-separated subset of online,batch,grid,octomap",
