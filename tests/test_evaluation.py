@@ -149,6 +149,30 @@ def test_cli_eval_hilbert_protocol(tmp_path: Path, capsys) -> None:
     assert sum(data["n_points"]) > sum(points)
 
 
+def test_cli_eval_draws_the_map_and_its_errors(tmp_path: Path, capsys) -> None:
+    from octolgp.bench.evaluation import plot_errors
+
+    out = tmp_path / "ev"
+    argv = ["eval", str(INTEL20), "--seeds", "1", "--methods", "online,grid", "--quiet"]
+    assert main([*argv, "--fast-online", "--resolution", "0.2", "--out", str(out)]) == 0
+    printed = capsys.readouterr().out
+    for picture in ("roc.png", "map.png", "errors.png"):
+        assert (out / picture).stat().st_size > 10_000
+        assert picture in printed
+    # a 3D example is drawn as a slice
+    from octolgp.bench.evaluation import ExampleSplit
+
+    rng = np.random.default_rng(0)
+    centres = (np.stack(np.meshgrid(*[np.arange(10)] * 3), -1).reshape(-1, 3) + 0.5) * 0.2
+    points = rng.uniform(0, 2, (200, 3))
+    labels = (points[:, 0] > 1).astype(np.int8)
+    example = ExampleSplit(
+        "seed 0", "online", 0.2, centres, rng.random(1000), points, labels, rng.random(200)
+    )
+    plot_errors(example, tmp_path / "e3.png")
+    assert (tmp_path / "e3.png").stat().st_size > 10_000
+
+
 def _exit_code(argv: list[str]) -> int:
     """``main``'s status, whether it returns it or argparse raises SystemExit."""
     try:

@@ -96,6 +96,38 @@ class SplitResult:
     tpr: FloatArray
 
 
+@dataclass(frozen=True)
+class ExampleSplit:
+    """What the pictures of ``octolgp eval --out`` show: the first split's first GP map.
+
+    Attributes
+    ----------
+    split, method : str
+        Which split and method the map and scores are.
+    resolution : float
+        Voxel edge, metres.
+    centres : ndarray of shape (k, d)
+        The map's voxel centres, world frame, metres.
+    prob : ndarray of shape (k,)
+        P(occupied) per voxel.
+    points : ndarray of shape (m, d)
+        The split's held-out test points.
+    labels : ndarray of int8, shape (m,)
+        1 occupied, 0 free.
+    scores : ndarray of shape (m,)
+        The map's P(occupied) at the test points.
+    """
+
+    split: str
+    method: str
+    resolution: float
+    centres: FloatArray
+    prob: FloatArray
+    points: FloatArray
+    labels: NDArray[np.int8]
+    scores: FloatArray
+
+
 @dataclass
 class EvalReport:
     """Everything :func:`evaluate_log` measured.
@@ -120,6 +152,7 @@ class EvalReport:
     results: dict[str, list[SplitResult]] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     hyperparameters: list[Hyperparameters] = field(default_factory=list)
+    example: ExampleSplit | None = None
 
     def summary(self) -> dict[str, dict[str, float]]:
         """Mean and standard deviation (ddof 0) of AUC, unknown fraction and seconds per method."""
@@ -349,6 +382,11 @@ def evaluate_log(
             built = builders[method](train)
             seconds = time.perf_counter() - t0
             probs = np.asarray(built.occupancy(points), dtype=np.float64)
+            if report.example is None and hasattr(built, "voxels"):  # the pictures' map
+                centres, prob = built.voxels()
+                report.example = ExampleSplit(
+                    name, method, config.resolution, centres, prob, points, labels, probs
+                )
             close = getattr(built, "close", None)
             if close is not None:
                 close()
@@ -402,3 +440,56 @@ def plot_roc(report: EvalReport, path: str | Path, title: str = "") -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120)
     plt.close(fig)
+
+
+def plot_errors(example: ExampleSplit, path: str | Path, title: str = "") -> None:
+    """The example map with its held-out points coloured by error, as a PNG (2D maps).
+
+    Free points the map calls occupied (P > 0.5) are red, occupied points it calls free
+    (P < 0.5) blue, points it leaves unknown (P = 0.5) orange; correct points are not
+    drawn. A 3D map is drawn as its slice at the median test-point height.
+
+    Parameters
+    ----------
+    example : ExampleSplit
+    path : str or Path
+        Output ``.png``; its folder is created.
+    title : str
+        Figure title.
+    """
+    from matplotlib.figure import Figure
+
+    from octolgp.export.image import occupancy_raster
+
+    centres, prob, points = example.centres, example.prob, example.points
+    if centres.shape[1] == 3:  # one height slice
+        z = float(np.median(points[:, 2]))
+        res = example.resolution
+        keep = np.floor(centres[:, 2] / res) == np.floor(z / res)
+        near = np.abs(points[:, 2] - z) < res
+        centres, prob = centres[keep, :2], prob[keep]
+        points, labels, scores = points[near, :2], example.labels[near], example.scores[near]
+    else:
+        labels, scores = example.labels, example.scores
+    fig = Figure(figsize=(8.0, 8.0), dpi=120, layout="constrained")
+    ax = fig.add_subplot()
+    if centres.shape[0]:
+        grid, extent = occupancy_raster(centres, prob, example.resolution)
+        ax.imshow(grid, origin="lower", extent=extent, cmap="gray_r", vmin=0, vmax=1, alpha=0.6)
+    kinds = (
+        ((labels == 0) & (scores > 0.5), "red", "free read occupied"),
+        ((labels == 1) & (scores < 0.5), "blue", "occupied read free"),
+        (scores == 0.5, "orange", "unknown (0.5)"),
+    )
+    for mask, colour, name in kinds:
+        ax.scatter(
+            points[mask, 0], points[mask, 1], s=2, c=colour, label=f"{name}: {int(mask.sum())}"
+        )
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal")
+    ax.legend(loc="upper right", fontsize=8, markerscale=4)
+    ax.set_title(title or f"{example.split}, {LABELS[example.method]}: held-out errors")
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out)

@@ -129,8 +129,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     import itertools
     import json
 
-    from octolgp.bench.evaluation import evaluate_log, plot_roc
+    from octolgp.bench.evaluation import evaluate_log, plot_errors, plot_roc
     from octolgp.config import MapConfig
+    from octolgp.export.image import write_png
 
     if not (0.0 < args.fraction < 1.0):
         raise OctolgpError(f"--fraction must be in (0, 1), got {args.fraction}")
@@ -164,6 +165,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     name = Path(args.scans).name
     plot_roc(report, out / "roc.png", title=f"{name}: held-out scans")
+    pictures = ["roc.png"]
+    example = report.example
+    if example is not None and example.centres.shape[0]:  # the map and its errors
+        plot_errors(example, out / "errors.png", title=f"{name}, {example.split}: held-out errors")
+        pictures.append("errors.png")
+        if example.centres.shape[1] == 2:
+            write_png(out / "map.png", example.centres, example.prob, example.resolution)
+            pictures.append("map.png")
     (out / "results.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
     table = (
         f"{name}, {len(scan_list)} scans, resolution {args.resolution} m, "
@@ -171,5 +180,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     )
     (out / "table.md").write_text(table + "\n")
     print(table)
-    print(f"\nwrote {out}/roc.png, {out}/results.json, {out}/table.md")
+    written = ", ".join(f"{out}/{f}" for f in [*pictures, "results.json", "table.md"])
+    print(f"\nwrote {written}")
     return 0

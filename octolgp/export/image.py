@@ -12,6 +12,45 @@ from octolgp.export.common import PathLike, as_centres, as_prob
 from octolgp.geometry.keys import addressable_range
 
 
+def occupancy_raster(
+    centres: ArrayLike, prob: ArrayLike, resolution: float
+) -> tuple[np.ndarray, tuple[float, float, float, float]]:
+    """Cells of pitch ``resolution`` over the centres' bounding box, unknown = 0.5.
+
+    Returns
+    -------
+    grid : ndarray of shape (ny, nx)
+        P(occupied), rows along y (``origin="lower"`` for ``imshow``).
+    extent : tuple of float
+        ``(xmin, xmax, ymin, ymax)`` of the cell edges, metres.
+
+    Raises
+    ------
+    OctolgpError
+        As :func:`write_png`.
+    """
+    addressable_range(resolution, 16)  # raises on a bad resolution
+    c = as_centres(centres, (2,))
+    p = as_prob(prob, c.shape[0])
+    if c.shape[0] == 0:
+        raise OctolgpError("centres must hold at least one cell to draw")
+    low = c.min(axis=0)
+    cell = np.rint((c - low) / resolution).astype(np.int64)
+    nx, ny = (cell.max(axis=0) + 1).tolist()
+    if nx * ny > 100_000_000:
+        raise OctolgpError(f"centres span {nx} x {ny} cells at resolution {resolution:g}")
+    grid = np.full((ny, nx), 0.5)
+    grid[cell[:, 1], cell[:, 0]] = p
+    half = 0.5 * resolution
+    extent = (
+        float(low[0] - half),
+        float(low[0] + (nx - 0.5) * resolution),
+        float(low[1] - half),
+        float(low[1] + (ny - 0.5) * resolution),
+    )
+    return grid, extent
+
+
 def write_png(
     path: PathLike,
     centres: ArrayLike,
@@ -46,25 +85,8 @@ def write_png(
         On a bad shape or non-finite value in ``centres`` or ``prob``, no cells,
         a bad ``resolution``, or a ``path`` that cannot be written.
     """
-    addressable_range(resolution, 16)  # raises on a bad resolution
-    c = as_centres(centres, (2,))
-    p = as_prob(prob, c.shape[0])
-    if c.shape[0] == 0:
-        raise OctolgpError("centres must hold at least one cell to draw")
-    low = c.min(axis=0)
-    cell = np.rint((c - low) / resolution).astype(np.int64)
-    nx, ny = (cell.max(axis=0) + 1).tolist()
-    if nx * ny > 100_000_000:
-        raise OctolgpError(f"centres span {nx} x {ny} cells at resolution {resolution:g}")
-    grid = np.full((ny, nx), 0.5)
-    grid[cell[:, 1], cell[:, 0]] = p
-    half = 0.5 * resolution
-    extent = (
-        low[0] - half,
-        low[0] + (nx - 0.5) * resolution,
-        low[1] - half,
-        low[1] + (ny - 0.5) * resolution,
-    )
+    grid, extent = occupancy_raster(centres, prob, resolution)
+    ny, nx = grid.shape
 
     from matplotlib.figure import Figure  # lazy: keeps `import octolgp` light
 
