@@ -133,6 +133,43 @@ def heldout_split(
     return np.flatnonzero(~held).astype(np.int64), np.flatnonzero(held).astype(np.int64)
 
 
+def _one_dimension(scans: Sequence[Scan], who: str) -> list[Scan]:
+    """The scans as a list; at least one, all of one dimension (else ``OctolgpError``)."""
+    scan_list = list(scans)
+    if not scan_list:
+        raise OctolgpError(f"{who}: no scans")
+    dims = {s.dim for s in scan_list}
+    if len(dims) != 1:
+        raise OctolgpError(f"{who}: scans of mixed dimension {sorted(dims)}")
+    return scan_list
+
+
+def _labelled(
+    origin: FloatArray,
+    end: FloatArray,
+    delta: FloatArray,
+    length: FloatArray,
+    hit: NDArray[np.bool_],
+    per_beam: NDArray[np.integer],
+    free_len: FloatArray,
+    generator: np.random.Generator,
+) -> tuple[FloatArray, LabelArray]:
+    """Endpoints of ``hit`` beams (occupied), then ``per_beam`` free points per beam.
+
+    The free points of beam ``b`` are ``origin + t * direction`` with ``t`` uniform on
+    ``[0, free_len[b])``, drawn in beam order; ``delta = end - origin`` and ``length``
+    its norm, per beam.
+    """
+    beam = np.repeat(np.arange(length.size), per_beam)
+    t = generator.random(beam.size) * free_len[beam]
+    free_points = origin[beam] + (t / length[beam])[:, None] * delta[beam]
+    points = np.concatenate([end[hit], free_points])
+    labels = np.concatenate(
+        [np.ones(int(hit.sum()), dtype=np.int8), np.zeros(beam.size, dtype=np.int8)]
+    )
+    return points, labels
+
+
 def heldout_points(
     scans: Sequence[Scan],
     rng: np.random.Generator | int,
@@ -182,12 +219,7 @@ def heldout_points(
         On no scans, scans of mixed dimension, ``free_per_beam < 0``, or a negative
         or non-finite ``short`` or ``resolution``.
     """
-    scan_list = list(scans)
-    if not scan_list:
-        raise OctolgpError("heldout_points: no scans")
-    dims = {s.dim for s in scan_list}
-    if len(dims) != 1:
-        raise OctolgpError(f"heldout_points: scans of mixed dimension {sorted(dims)}")
+    scan_list = _one_dimension(scans, "heldout_points")
     per_free = _check_int(free_per_beam, "heldout_points: free_per_beam", 0)
     margin = _check_float(short, "heldout_points: short", 0.0)
     if resolution is not None:
@@ -207,15 +239,8 @@ def heldout_points(
     has_free = valid & (free_len > MIN_BEAM_LENGTH)
 
     # Free samples: free_per_beam per segment, t ~ U[0, free_len) along the unit direction.
-    beam = np.repeat(np.flatnonzero(has_free), per_free)
-    t = generator.random(beam.size) * free_len[beam]
-    free_points = origin[beam] + (t / length[beam])[:, None] * delta[beam]
-
-    points = np.concatenate([end[hit], free_points])
-    labels = np.concatenate(
-        [np.ones(int(hit.sum()), dtype=np.int8), np.zeros(beam.size, dtype=np.int8)]
-    )
-    return points, labels
+    per_beam = np.where(has_free, per_free, 0)
+    return _labelled(origin, end, delta, length, hit, per_beam, free_len, generator)
 
 
 def hilbert_points(
@@ -250,12 +275,7 @@ def hilbert_points(
     OctolgpError
         On no scans, scans of mixed dimension, or a negative or non-finite ``short``.
     """
-    scan_list = list(scans)
-    if not scan_list:
-        raise OctolgpError("hilbert_points: no scans")
-    dims = {s.dim for s in scan_list}
-    if len(dims) != 1:
-        raise OctolgpError(f"hilbert_points: scans of mixed dimension {sorted(dims)}")
+    scan_list = _one_dimension(scans, "hilbert_points")
     margin = _check_float(short, "hilbert_points: short", 0.0)
     generator = np.random.default_rng(rng)
     origin, end, max_range = stack_beams(scan_list)
@@ -265,14 +285,7 @@ def hilbert_points(
     free_len = np.maximum(length - margin, 0.0)
     # int(d / 2), robust to the range a point's norm gives back (6.0 -> 5.999...)
     per_beam = np.where(hit, np.maximum(1, np.floor(length / 2.0 + 1e-9).astype(np.int64)), 0)
-    beam = np.repeat(np.arange(length.size), per_beam)
-    t = generator.random(beam.size) * free_len[beam]
-    free_points = origin[beam] + (t / length[beam])[:, None] * delta[beam]
-    points = np.concatenate([end[hit], free_points])
-    labels = np.concatenate(
-        [np.ones(int(hit.sum()), dtype=np.int8), np.zeros(beam.size, dtype=np.int8)]
-    )
-    return points, labels
+    return _labelled(origin, end, delta, length, hit, per_beam, free_len, generator)
 
 
 PROTOCOLS = ("endpoint", "hilbert")

@@ -302,17 +302,7 @@ class OnlineMap(MapReads):
                 return update
         else:
             self._commit([], [(index, scan)], index)
-        return ScanUpdate(
-            scan=self.n_scans,
-            touched_leaves=0,
-            refit_leaves=0,
-            new_items=0,
-            pruned_leaves=0,
-            seconds=time.perf_counter() - t0,
-            buffered=True,
-            n_leaves=len(self.store),
-            memory_bytes=self.memory_bytes(),
-        )
+        return self._buffered_update(t0)
 
     def insert_scans(self, scans: Iterable[Scan]) -> list[ScanUpdate]:
         """Insert scans one by one; return their updates."""
@@ -438,22 +428,13 @@ class OnlineMap(MapReads):
                     f"corrections[{i}] moves the scan out of the map: {exc}"
                 ) from None
         extents = self._journal_extents(storage)  # read before any write
+        rows, moved_extents = np.array(list(new)) - 1, scan_extents(list(new.values()), self.grid)
         if self.hyperparameters is None:  # still buffering: only the journal moves
             storage.correct([], [], list(new.items()))
             self._buffer = [new.get(i, scan) for i, scan in enumerate(self._buffer, start=1)]
             self._provisional = None
-            extents[np.array(list(new)) - 1] = scan_extents(list(new.values()), self.grid)
-            return ScanUpdate(
-                scan=self.n_scans,
-                touched_leaves=0,
-                refit_leaves=0,
-                new_items=0,
-                pruned_leaves=0,
-                seconds=time.perf_counter() - t0,
-                buffered=True,
-                n_leaves=len(self.store),
-                memory_bytes=self.memory_bytes(),
-            )
+            extents[rows] = moved_extents
+            return self._buffered_update(t0)
         hp = self.hyperparameters
         with self._blas_limit():
             # 1. the leaves either version of the corrected scans reaches
@@ -462,7 +443,7 @@ class OnlineMap(MapReads):
             affected = sorted(reach.touched)
             # 2. every scan whose extent reaches them, corrected, replayed in time order
             corrected_extents = extents.copy()
-            corrected_extents[np.array(list(new)) - 1] = scan_extents(list(new.values()), self.grid)
+            corrected_extents[rows] = moved_extents
             index = unpack_keys(np.asarray(affected, dtype=np.int64), self.config.dim)
             near = np.flatnonzero(overlapping_scans(corrected_extents, index, self.grid)) + 1
             journal = storage.read_scans(near.tolist())
@@ -656,6 +637,20 @@ class OnlineMap(MapReads):
             self._commit([k for k, _ in fitted], [], self.n_scans)
 
     # ------------------------------------------------------------------ plumbing
+    def _buffered_update(self, t0: float) -> ScanUpdate:
+        """The update of a step that only buffered or journaled scans (no leaf changed)."""
+        return ScanUpdate(
+            scan=self.n_scans,
+            touched_leaves=0,
+            refit_leaves=0,
+            new_items=0,
+            pruned_leaves=0,
+            seconds=time.perf_counter() - t0,
+            buffered=True,
+            n_leaves=len(self.store),
+            memory_bytes=self.memory_bytes(),
+        )
+
     def _journal_extents(self, storage: MapStorage) -> np.ndarray:
         """Each journaled scan's extent in voxel keys, (n_scans, 2, d), kept up to date.
 
