@@ -150,7 +150,8 @@ def build_config(args: argparse.Namespace) -> MapConfig:
 
 
 # ----------------------------------------------------------------------------- machine
-def _cpu_model() -> str:
+def cpu_model() -> str:
+    """The CPU's model name (from /proc/cpuinfo), else what platform knows."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -160,7 +161,7 @@ def _cpu_model() -> str:
     return platform.processor() or platform.machine()
 
 
-def _git_revision() -> str:
+def git_revision() -> str:
     """The octolgp source's git revision, and the changed package files when it is dirty."""
     source = Path(octolgp.__file__).resolve().parents[1]
     try:
@@ -522,9 +523,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     print("# octolgp vs OctoMap, 3D lidar at 0.2 m (issue #14)")
     print(f"Command: `.venv/bin/python tools/bench_3d.py {shlex.join(words)}`".rstrip())
     print(
-        f"Machine: {_cpu_model()}, {os.cpu_count()} cores ({len(os.sched_getaffinity(0))} usable); "
+        f"Machine: {cpu_model()}, {os.cpu_count()} cores ({len(os.sched_getaffinity(0))} usable); "
         f"{platform.system()} {platform.release()}; Python {platform.python_version()}, "
-        f"numpy {np.__version__}; octolgp {octolgp.__version__} from {_git_revision()}; "
+        f"numpy {np.__version__}; octolgp {octolgp.__version__} from {git_revision()}; "
         f"{datetime.datetime.now().astimezone():%Y-%m-%d %H:%M %Z}"
     )
     changes = non_defaults(config)

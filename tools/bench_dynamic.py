@@ -60,14 +60,12 @@ Run from the repository root::
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
 import datetime
 import functools
 import os
 import platform
 import shlex
-import subprocess
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -91,6 +89,9 @@ from octolgp.sim.dynamic import (
     voxel_keys,
 )
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the sibling tool's helpers
+from bench_3d import apply_setting, cpu_model, git_revision
+
 HP_2D = Hyperparameters(
     length_scale=0.85, signal_variance=1.8, noise_variance=0.01, alpha=4.3, beta=0.0
 )
@@ -112,70 +113,6 @@ class Peer(Protocol):
 
     def occupancy(self, points: np.ndarray) -> np.ndarray:
         """P(occupied) at points ``(q, d)``."""
-
-
-# ----------------------------------------------------------------------------- config
-def _parse_value(text: str) -> Any:
-    """``--set`` value: a Python literal (``2``, ``0.5``, ``None``, ``True``), else the string."""
-    lowered = {"true": True, "false": False, "none": None, "null": None}
-    if text.lower() in lowered:
-        return lowered[text.lower()]
-    try:
-        return ast.literal_eval(text)
-    except (ValueError, SyntaxError):
-        return text
-
-
-def apply_setting(config: MapConfig, setting: str) -> MapConfig:
-    """Apply one ``SECTION.FIELD=VALUE`` with ``dataclasses.replace``."""
-    key, sep, text = setting.partition("=")
-    text = text.strip()
-    section, _, name = key.strip().rpartition(".")
-    if not sep or not section or not name:
-        raise SystemExit(f"--set {setting!r}: expected SECTION.FIELD=VALUE")
-    current = getattr(config, section, None)
-    if current is None or not dataclasses.is_dataclass(current):
-        raise SystemExit(f"--set {setting!r}: MapConfig has no section {section!r}")
-    if name not in {f.name for f in dataclasses.fields(current)}:
-        raise SystemExit(f"--set {setting!r}: {section} has no field {name!r}")
-    try:
-        sub: Any = current
-        changed: dict[str, Any] = {section: dataclasses.replace(sub, **{name: _parse_value(text)})}
-        return dataclasses.replace(config, **changed)
-    except (TypeError, octolgp.OctolgpError) as exc:
-        raise SystemExit(f"--set {setting!r}: {exc}") from None
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
-def _git_revision() -> str:
-    """The source's git revision, and the changed package files when it is dirty."""
-    source = Path(octolgp.__file__).resolve().parents[1]
-    try:
-        rev = subprocess.run(
-            ["git", "-C", str(source), "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.strip()
-        changed = subprocess.run(
-            ["git", "-C", str(source), "status", "--porcelain", "--", "octolgp"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout.split("\n")
-    except (OSError, subprocess.CalledProcessError):
-        return "(not a git checkout)"
-    files = [line[3:] for line in changed if line.strip()]
-    return f"commit {rev}" + (f" with uncommitted changes to {', '.join(files)}" if files else "")
 
 
 # ----------------------------------------------------------------------------- truth
@@ -533,9 +470,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = f".venv/bin/python tools/bench_dynamic.py {shlex.join(words)}".rstrip()
     print(f"Command: `{command}`")
     print(
-        f"Machine: {_cpu_model()}, {os.cpu_count()} cores ({len(os.sched_getaffinity(0))} usable); "
+        f"Machine: {cpu_model()}, {os.cpu_count()} cores ({len(os.sched_getaffinity(0))} usable); "
         f"{platform.system()} {platform.release()}; Python {platform.python_version()}, "
-        f"numpy {np.__version__}; octolgp {octolgp.__version__} at {_git_revision()}; "
+        f"numpy {np.__version__}; octolgp {octolgp.__version__} from {git_revision()}; "
         f"{datetime.datetime.now().astimezone():%Y-%m-%d %H:%M %Z}"
     )
     print(
