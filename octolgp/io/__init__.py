@@ -23,6 +23,9 @@ Supported formats (``format=`` names):
 - ``"scandat"``: OctoMap's plain ``scan.dat`` (``x y z`` lines, sensor at the origin) and its
   ``NODE x y z roll pitch yaw`` scan-graph text form, optionally ``.gz``/``.bz2``.
 - ``"graph"``: OctoMap's binary scan graph ``.graph`` (:mod:`octolgp.io.octomap_graph`).
+- ``"kitti"``: a KITTI odometry sequence directory ``sequences/NN`` (``velodyne/*.bin``,
+  ``calib.txt``) posed by ``poses/NN.txt`` beside ``sequences/`` (:mod:`octolgp.io.kitti`);
+  streamed. :func:`~octolgp.io.kitti.read_kitti` takes the options (poses file, world frame).
 
 Every reader streams and takes ``skip_bad``: malformed lines, messages or files are then
 skipped and counted (the reader's ``skipped``) instead of raising an error that names the
@@ -41,6 +44,7 @@ from numpy.typing import ArrayLike
 
 from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.io.carmen import CarmenReader, looks_like_carmen, read_carmen
+from octolgp.io.kitti import KittiReader, looks_like_kitti, read_kitti
 from octolgp.io.npz import read_npz, read_truth, write_npz
 from octolgp.io.octomap_graph import (
     GraphReader,
@@ -64,6 +68,7 @@ __all__ = [
     "SCAN_FORMATS",
     "CarmenReader",
     "GraphReader",
+    "KittiReader",
     "PcdReader",
     "PlyReader",
     "RosbagReader",
@@ -76,6 +81,7 @@ __all__ = [
     "read_3dtk",
     "read_carmen",
     "read_graph",
+    "read_kitti",
     "read_npz",
     "read_pcd",
     "read_ply",
@@ -88,7 +94,18 @@ __all__ = [
     "write_npz",
 ]
 
-SCAN_FORMATS = ("npz", "carmen", "3dtk", "rrd", "rosbag", "pcd", "ply", "scandat", "graph")
+SCAN_FORMATS = (
+    "npz",
+    "carmen",
+    "3dtk",
+    "rrd",
+    "rosbag",
+    "pcd",
+    "ply",
+    "scandat",
+    "graph",
+    "kitti",
+)
 """Names accepted by ``load_scans(..., format=...)``."""
 
 _CARMEN_SUFFIXES = (".log", ".clf")
@@ -105,7 +122,8 @@ def detect_format(path: str | Path) -> str:
     Parameters
     ----------
     path : str or Path
-        An existing file, or a directory of 3DTK scans.
+        An existing file, or a directory of 3DTK, PCD or PLY scans, a ROS 2 bag or a
+        KITTI sequence.
 
     Returns
     -------
@@ -124,6 +142,8 @@ def detect_format(path: str | Path) -> str:
         raise MapFileNotFound(f"scan log {str(p)!r} does not exist")
     if looks_like_rosbag(p):
         return "rosbag"
+    if p.is_dir() and looks_like_kitti(p):
+        return "kitti"
     if looks_like_3dtk(p):
         return "3dtk"
     if p.is_dir() and looks_like_pcd(p):
@@ -181,7 +201,7 @@ def load_scans(
     Parameters
     ----------
     path : str or Path
-        The log file (or 3DTK scan directory).
+        The log file (or 3DTK scan directory, KITTI sequence ``sequences/NN``...).
     format : str, optional
         One of :data:`SCAN_FORMATS`; chosen by :func:`detect_format` when omitted.
     skip_bad : bool
@@ -227,6 +247,8 @@ def load_scans(
         return ScanDatReader(p, skip_bad=skip_bad)
     if format == "graph":
         return GraphReader(p, skip_bad=skip_bad)
+    if format == "kitti":
+        return KittiReader(p, skip_bad=skip_bad)
     raise OctolgpError(f"load_scans: unknown format {format!r} (supported: {SCAN_FORMATS})")
 
 
