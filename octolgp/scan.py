@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -167,6 +168,104 @@ class Scan:
         phi = p[2] + a
         pts = p[:2] + r[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
         return cls(origin=p[:2], points=pts, max_range=max_range, stamp=stamp)
+
+    @classmethod
+    def from_laserscan(
+        cls,
+        msg: Any,
+        pose: ArrayLike,
+        *,
+        max_range: float | None = None,
+        stamp: float | None = None,
+    ) -> Scan:
+        """Build a scan from a ROS 2 ``sensor_msgs/msg/LaserScan``.
+
+        The message may come from ``rclpy``, from ``rosbags`` or be any object with the
+        fields ``angle_min``, ``angle_increment``, ``ranges``, ``range_min``, ``range_max``
+        (``angle_max`` and ``header.stamp`` are used when present). A reading in
+        ``[range_min, range_max)`` is a hit; ``+inf`` or ``>= range_max`` is a no-return (a
+        beam of length ``range_max``, :attr:`max_range` 1 mm below it); ``NaN``, ``-inf``
+        and readings below ``range_min`` are dropped (REP 117). The decoder is the ROS bag
+        reader's (:mod:`octolgp.io.ros_msgs`).
+
+        Parameters
+        ----------
+        msg : sensor_msgs/msg/LaserScan
+            The scan, ranges in metres, angles in radians in the laser frame.
+        pose : array_like of shape (3,), (3, 3) or (4, 4)
+            The laser frame's pose in the world frame: ``(x, y, theta)`` (metres, radians
+            CCW) or a 3x3 homogeneous matrix give a 2D scan; a 4x4 matrix gives a 3D scan
+            whose beams lie in the laser's xy plane.
+        max_range : float, optional
+            Metres; the no-return threshold used instead of ``range_max`` when smaller.
+        stamp : float, optional
+            Seconds; default: ``msg.header.stamp`` (``None`` if absent or zero).
+
+        Raises
+        ------
+        OctolgpError
+            On a malformed message (naming the field: ``Scan.from_laserscan:
+            angle_increment must be > 0, got 0.0``), a bad pose (shape, NaN or inf, not
+            rigid), or a scan with no beam left.
+        """
+        from octolgp.io.ros_msgs import laserscan_to_scan
+
+        try:
+            scan = laserscan_to_scan(msg, pose, max_range=max_range, stamp=stamp)
+        except OctolgpError as exc:
+            raise OctolgpError(f"Scan.from_laserscan: {exc}") from None
+        if scan is None:
+            raise OctolgpError(
+                "Scan.from_laserscan: no beam left (every range is NaN, -inf or below range_min)"
+            )
+        return scan
+
+    @classmethod
+    def from_pointcloud2(
+        cls,
+        msg: Any,
+        pose: ArrayLike,
+        *,
+        max_range: float | None = None,
+        stamp: float | None = None,
+    ) -> Scan:
+        """Build a 3D scan from a ROS 2 ``sensor_msgs/msg/PointCloud2``.
+
+        The message may come from ``rclpy``, from ``rosbags`` or be any object with the
+        fields ``fields`` (``name``, ``offset``, ``datatype``, ``count``), ``point_step``,
+        ``row_step``, ``data``, ``is_bigendian``, ``height`` and ``width``. ``x``, ``y``,
+        ``z`` may be FLOAT32 or FLOAT64 at any offsets, in either byte order, among any
+        other fields; rows may be padded to ``row_step``. Points with a NaN or inf
+        coordinate (the holes of an organised cloud) are dropped. The decoder is the ROS bag
+        reader's (:mod:`octolgp.io.ros_msgs`).
+
+        Parameters
+        ----------
+        msg : sensor_msgs/msg/PointCloud2
+            The cloud, metres, in the sensor frame.
+        pose : array_like of shape (4, 4) or (3,)
+            The sensor frame's pose in the world frame: a 4x4 homogeneous matrix, or
+            ``(x, y, theta)`` for a sensor at z = 0 turned by ``theta`` about z.
+        max_range : float, optional
+            Metres; points at least this far from the sensor are no-returns. Default: none.
+        stamp : float, optional
+            Seconds; default: ``msg.header.stamp`` (``None`` if absent or zero).
+
+        Raises
+        ------
+        OctolgpError
+            On a malformed message (naming the field: ``Scan.from_pointcloud2: field 'z' at
+            offset 8 overruns point_step 8``), a bad pose, or a cloud with no finite point.
+        """
+        from octolgp.io.ros_msgs import pointcloud2_to_scan
+
+        try:
+            scan = pointcloud2_to_scan(msg, pose, max_range=max_range, stamp=stamp)
+        except OctolgpError as exc:
+            raise OctolgpError(f"Scan.from_pointcloud2: {exc}") from None
+        if scan is None:
+            raise OctolgpError("Scan.from_pointcloud2: no finite point in the cloud")
+        return scan
 
     def downsample(self, voxel: float) -> Scan:
         """Keep one endpoint per voxel of edge ``voxel`` (a voxel-grid filter).

@@ -17,6 +17,10 @@ One scan topic is read, in bag (receive-time) order, and posed in a fixed frame:
   or not, decoded with one numpy structured dtype. Points with a non-finite coordinate are
   dropped. A cloud has no no-returns unless ``max_range`` is given.
 
+Messages are decoded by :mod:`octolgp.io.ros_msgs`, the code behind
+:meth:`Scan.from_laserscan <octolgp.scan.Scan.from_laserscan>` and
+:meth:`Scan.from_pointcloud2 <octolgp.scan.Scan.from_pointcloud2>`.
+
 The sensor pose of a scan with header stamp ``t`` (the bag time when the stamp is zero) comes
 from one source:
 
@@ -50,15 +54,19 @@ import math
 from collections.abc import Generator, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import MappingProxyType
 from typing import Any
 
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
-from octolgp.geometry.rotations import quaternion_to_matrix
 from octolgp.io.base import ScanStream
 from octolgp.io.carmen import NO_RETURN_MARGIN
+from octolgp.io.ros_msgs import (
+    RosMessageError,
+    laserscan_to_scan,
+    pointcloud2_to_scan,
+    transform_matrix,
+)
 from octolgp.scan import FloatArray, Scan
 
 __all__ = [
@@ -90,13 +98,7 @@ _MCAP_MAGIC = b"\x89MCAP0\r\n"
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _FRAME_SNIFF = 1000  # tf messages read at construction to choose the default frame
 _MAX_DEPTH = 64  # tf tree depth limit (guards against cycles)
-_ANGLE_RTOL = 1e-6
 _NS = 1_000_000_000
-_FLOAT_FIELDS = MappingProxyType({7: "f4", 8: "f8"})  # PointField.FLOAT32, FLOAT64
-
-
-class _BadMessageError(Exception):
-    """A malformed message; the reader adds the file, topic and message index."""
 
 
 def _why(exc: BaseException) -> str:
@@ -132,21 +134,6 @@ def _stamp_ns(header: Any, fallback: int) -> int:
     """Header stamp in integer nanoseconds; ``fallback`` (the bag time) when it is zero."""
     ns = int(header.stamp.sec) * _NS + int(header.stamp.nanosec)
     return ns if ns != 0 else fallback
-
-
-def _transform(translation: Any, rotation: Any) -> FloatArray:
-    """4x4 homogeneous transform from a ROS ``Vector3``/``Point`` and a ``Quaternion``."""
-    t = np.array([translation.x, translation.y, translation.z], dtype=np.float64)
-    q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=np.float64)
-    if not (np.isfinite(t).all() and np.isfinite(q).all()):
-        raise _BadMessageError("NaN or inf in a transform")
-    norm = float(np.linalg.norm(q))
-    if norm < 1e-6:
-        raise _BadMessageError("zero quaternion")
-    T = np.eye(4)
-    T[:3, :3] = quaternion_to_matrix(q, order="xyzw")
-    T[:3, 3] = t
-    return T
 
 
 def _inverse(T: FloatArray) -> FloatArray:
@@ -257,91 +244,10 @@ class TfBuffer:
         return None
 
 
-def _laser_angles(msg: Any, n: int) -> FloatArray:
-    """Beam angles of a LaserScan, radians, shape (n,); see the module docstring."""
-    a0, a1, inc = float(msg.angle_min), float(msg.angle_max), float(msg.angle_increment)
-    if not (math.isfinite(a0) and math.isfinite(a1) and math.isfinite(inc)):
-        raise _BadMessageError("NaN or inf in angle_min/angle_max/angle_increment")
-    if inc <= 0:
-        raise _BadMessageError(f"angle_increment must be > 0, got {inc!r}")
-    if n > 1 and abs((a1 - a0) / (n - 1) - inc) <= _ANGLE_RTOL * inc:
-        return np.linspace(a0, a1, n)
-    return a0 + inc * np.arange(n, dtype=np.float64)
-
-
-def _decode_laser(msg: Any, limit: float | None) -> tuple[FloatArray, FloatArray, float]:
-    """Ranges (no-returns set to the range limit), their angles, and that limit."""
-    ranges = np.asarray(msg.ranges, dtype=np.float64)
-    if ranges.ndim != 1:
-        raise _BadMessageError(f"ranges must be 1D, got shape {ranges.shape}")
-    angles = _laser_angles(msg, ranges.shape[0])
-    rmin, rmax = float(msg.range_min), float(msg.range_max)
-    if not (math.isfinite(rmin) and math.isfinite(rmax) and 0 <= rmin < rmax):
-        raise _BadMessageError(f"need finite 0 <= range_min < range_max, got {rmin!r}, {rmax!r}")
-    if limit is not None:
-        rmax = min(rmax, limit)
-    with np.errstate(invalid="ignore"):
-        no_return = ranges >= rmax  # includes +inf
-        keep = no_return | (ranges >= rmin)  # excludes NaN, -inf and short readings
-    out = np.where(no_return, rmax, ranges)
-    return out[keep], angles[keep], rmax
-
-
-def _cloud_dtype(msg: Any) -> np.dtype[Any]:
-    """Structured dtype of one point's x, y, z fields."""
-    fields = {f.name: f for f in msg.fields}
-    missing = [name for name in "xyz" if name not in fields]
-    if missing:
-        names = ", ".join(repr(f.name) for f in msg.fields) or "none"
-        raise _BadMessageError(f"no {'/'.join(missing)} field (fields: {names})")
-    step = int(msg.point_step)
-    order = ">" if msg.is_bigendian else "<"
-    formats, offsets = [], []
-    for name in "xyz":
-        f = fields[name]
-        kind = _FLOAT_FIELDS.get(int(f.datatype))
-        if kind is None:
-            raise _BadMessageError(f"field {name!r} has datatype {f.datatype}, not FLOAT32/64")
-        offset = int(f.offset)
-        if offset < 0 or offset + int(kind[1]) > step:
-            raise _BadMessageError(f"field {name!r} at offset {offset} overruns point_step {step}")
-        formats.append(order + kind)
-        offsets.append(offset)
-    return np.dtype(
-        {"names": list("xyz"), "formats": formats, "offsets": offsets, "itemsize": step}
-    )
-
-
-def _decode_cloud(msg: Any) -> FloatArray:
-    """Finite points of a PointCloud2, in its frame, shape (n, 3), metres."""
-    width, height, step = int(msg.width), int(msg.height), int(msg.point_step)
-    if step <= 0:
-        raise _BadMessageError(f"point_step must be > 0, got {step}")
-    dtype = _cloud_dtype(msg)
-    data = np.asarray(msg.data, dtype=np.uint8)
-    row = width * step
-    if data.size == height * row:
-        rows = data
-    elif row_step := int(msg.row_step):
-        if row_step < row or data.size != height * row_step:
-            raise _BadMessageError(
-                f"data has {data.size} bytes, width*height*point_step = {height * row}"
-            )
-        rows = np.ascontiguousarray(data.reshape(height, row_step)[:, :row]).reshape(-1)
-    else:
-        raise _BadMessageError(
-            f"data has {data.size} bytes, width*height*point_step = {height * row}"
-        )
-    points = np.frombuffer(rows, dtype=dtype)
-    with np.errstate(invalid="ignore"):  # a signalling NaN; dropped as NaN below
-        xyz = np.stack([points["x"], points["y"], points["z"]], axis=1).astype(np.float64)
-    return xyz[np.isfinite(xyz).all(axis=1)]
-
-
 def _pose_of(msg: Any, msgtype: str) -> FloatArray:
     """The 4x4 pose of a pose-topic message."""
     pose = msg.pose if msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
-    return _transform(pose.position, pose.orientation)
+    return transform_matrix(pose.position, pose.orientation)
 
 
 class RosbagReader(ScanStream):
@@ -569,7 +475,7 @@ class RosbagReader(ScanStream):
                             pose_child = getattr(msg, "child_frame_id", "").lstrip("/")
                         else:
                             self._add_tf(tf, msg, bag_ns, static=_static(topic))
-                    except _BadMessageError as exc:
+                    except RosMessageError as exc:
                         self._bad(topic, index, str(exc))
                     continue
                 try:
@@ -596,7 +502,7 @@ class RosbagReader(ScanStream):
                             offset = tf.lookup(pose_child, source, stamp, static_only=True)
                         T_world = pose if offset is None else pose @ offset
                     scan = self._to_scan(msg, T_world, stamp)
-                except _BadMessageError as exc:
+                except RosMessageError as exc:
                     self._bad(topic, index, str(exc))
                     continue
                 if scan is None:
@@ -620,28 +526,20 @@ class RosbagReader(ScanStream):
     @staticmethod
     def _add_tf(tf: TfBuffer, msg: Any, bag_ns: int, static: bool) -> None:
         for t in msg.transforms:
-            T = _transform(t.transform.translation, t.transform.rotation)
+            T = transform_matrix(t.transform.translation, t.transform.rotation)
             parent, child = t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/")
             if not parent or not child or parent == child:
-                raise _BadMessageError(f"bad tf link {parent!r} -> {child!r}")
+                raise RosMessageError(f"bad tf link {parent!r} -> {child!r}")
             tf.add(parent, child, _stamp_ns(t.header, bag_ns), T, static)
 
     def _to_scan(self, msg: Any, T_world: FloatArray, stamp: int) -> Scan | None:
         """The scan in the world frame, or ``None`` when no beam is left."""
         seconds = stamp / _NS
-        if self.scan_type == LASERSCAN:
-            ranges, angles, limit = _decode_laser(msg, self.max_range)
-            if ranges.size == 0:
-                return None
+        if self.scan_type == LASERSCAN:  # posed in the plane: (x, y, yaw)
             yaw = math.atan2(T_world[1, 0], T_world[0, 0])
             pose = np.array([T_world[0, 3], T_world[1, 3], yaw])
-            threshold = limit - NO_RETURN_MARGIN if limit > NO_RETURN_MARGIN else None
-            return Scan.from_ranges(pose, ranges, angles, threshold, seconds)
-        xyz = _decode_cloud(msg)
-        if xyz.shape[0] == 0:
-            return None
-        points = xyz @ T_world[:3, :3].T + T_world[:3, 3]
-        return Scan(T_world[:3, 3].copy(), points, self.max_range, seconds)
+            return laserscan_to_scan(msg, pose, max_range=self.max_range, stamp=seconds)
+        return pointcloud2_to_scan(msg, T_world, max_range=self.max_range, stamp=seconds)
 
 
 def _static(topic: str) -> bool:
