@@ -179,9 +179,9 @@ def pose_matrix(pose: ArrayLike, name: str = "pose") -> FloatArray:
 
 def _laser_angles(msg: Any, n: int) -> FloatArray:
     """Beam angles of a LaserScan, radians, shape (n,); see the module docstring."""
-    a0 = _number(msg, "angle_min")
-    a1 = _number(msg, "angle_max") if hasattr(msg, "angle_max") else math.nan
-    inc = _number(msg, "angle_increment")
+    a0: float = _number(msg, "angle_min")
+    a1: float = _number(msg, "angle_max") if hasattr(msg, "angle_max") else math.nan
+    inc: float = _number(msg, "angle_increment")
     if not (math.isfinite(a0) and math.isfinite(inc)) or (
         hasattr(msg, "angle_max") and not math.isfinite(a1)
     ):
@@ -265,8 +265,12 @@ def laserscan_to_scan(
 
 def _cloud_dtype(msg: Any, step: int) -> np.dtype[Any]:
     """Structured dtype of one point's x, y, z fields."""
+    try:
+        items = list(_get(msg, "fields"))
+    except TypeError:
+        raise RosMessageError("fields must be a sequence of PointField") from None
     fields: dict[str, Any] = {}
-    for f in _get(msg, "fields"):
+    for f in items:
         fields.setdefault(str(_get(f, "name")), f)
     missing = [name for name in "xyz" if name not in fields]
     if missing:
