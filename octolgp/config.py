@@ -8,6 +8,7 @@ globals: two maps with different configs can live in one process.
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import os
 import tomllib
@@ -538,31 +539,64 @@ class MapConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> MapConfig:
-        """Build a config from nested dicts, as read from TOML or JSON."""
-        sections: dict[str, type] = {
-            "hyperparameters": Hyperparameters,
-            "training": TrainingConfig,
-            "partition": PartitionConfig,
-            "learning": LearningConfig,
-            "ogm": OgmConfig,
-            "online": OnlineConfig,
-        }
+        """Build a config from nested dicts, as read from TOML or JSON.
+
+        Raises
+        ------
+        OctolgpError
+            On an unknown key (``MapConfig.online.clear_scan: unknown key``) or a bad value
+            (naming the field, as the section's validation does).
+        """
+        return cls._from_dict(data, "MapConfig.", toml_names=False)
+
+    @classmethod
+    def _from_dict(cls, data: dict[str, Any], where: str, *, toml_names: bool) -> MapConfig:
+        """:meth:`from_dict`; errors start with ``where``, keys named as in TOML if asked."""
         kwargs: dict[str, Any] = {}
-        valid = {f.name for f in dataclasses.fields(cls)}
+        valid = [f.name for f in dataclasses.fields(cls)]
         for key, value in data.items():
             if key not in valid:
-                raise OctolgpError(f"MapConfig has no field {key!r}")
-            if key in sections and isinstance(value, dict):
+                raise OctolgpError(f"{where}{key}: unknown key (keys: {', '.join(valid)})")
+            section = _SECTIONS.get(key)
+            if section is not None:
+                if not isinstance(value, dict):
+                    raise OctolgpError(
+                        f"{where}{key}: must be a table of {section.__name__} fields, got {value!r}"
+                    )
+                names = [f.name for f in dataclasses.fields(section)]
+                for sub in value:
+                    if sub not in names:
+                        raise OctolgpError(
+                            f"{where}{key}.{sub}: unknown key (keys: {', '.join(names)})"
+                        )
                 try:
-                    value = sections[key](**value)
-                except TypeError as exc:
-                    raise OctolgpError(f"MapConfig.{key}: {exc}") from None
+                    value = section(**value)
+                except OctolgpError as exc:
+                    if not toml_names:
+                        raise
+                    raise OctolgpError(where + _toml_named(str(exc))) from None
             kwargs[key] = value
-        return cls(**kwargs)
+        try:
+            return cls(**kwargs)
+        except OctolgpError as exc:
+            if not toml_names:
+                raise
+            raise OctolgpError(where + _toml_named(str(exc))) from None
 
     @classmethod
     def from_toml(cls, path: str | Path) -> MapConfig:
-        """Read a config from a TOML file (sections as tables)."""
+        """Read a config from a TOML file: top-level fields, then one table per section.
+
+        Keys left out take their defaults (:meth:`to_toml` writes them all).
+
+        Raises
+        ------
+        MapFileNotFound
+            If ``path`` does not exist.
+        OctolgpError
+            On invalid TOML, an unknown key or a bad value, naming the file and the key
+            (``cfg.toml: online.clear_scan: unknown key (keys: ...)``).
+        """
         p = Path(path)
         if not p.is_file():
             raise MapFileNotFound(f"config file {str(p)!r} does not exist")
@@ -570,4 +604,59 @@ class MapConfig:
             data = tomllib.loads(p.read_text())
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise OctolgpError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
-        return cls.from_dict(data)
+        return cls._from_dict(data, f"config file {str(p)!r}: ", toml_names=True)
+
+    def to_toml(self) -> str:
+        """The config as TOML that :meth:`from_toml` reads back to an equal config.
+
+        Every field is written (``None`` values, meaning "derived", are left out), top-level
+        fields first, then one table per section, in declaration order.
+        """
+        lines = ["# octolgp MapConfig: read with `--config FILE` or MapConfig.from_toml"]
+        tables = []
+        for key, value in self.to_dict().items():
+            if isinstance(value, dict):
+                tables.append((key, value))
+            else:
+                lines.append(f"{key} = {_toml_value(value)}")
+        for key, table in tables:
+            lines += ["", f"[{key}]"]
+            lines += [f"{name} = {_toml_value(v)}" for name, v in table.items()]
+        return "\n".join(lines) + "\n"
+
+
+_SECTIONS: dict[str, type] = {
+    "hyperparameters": Hyperparameters,
+    "training": TrainingConfig,
+    "partition": PartitionConfig,
+    "learning": LearningConfig,
+    "ogm": OgmConfig,
+    "online": OnlineConfig,
+}
+
+
+def _toml_named(message: str) -> str:
+    """A validation message with its leading ``OnlineConfig.`` as ``online.`` (TOML keys)."""
+    if message.startswith("MapConfig."):
+        return message[len("MapConfig.") :]
+    for key, section in _SECTIONS.items():
+        if message.startswith(section.__name__ + "."):
+            return key + message[len(section.__name__) :]
+    return message
+
+
+def _toml_value(value: object) -> str:
+    """One TOML value: a bool, int, float or string."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "nan"
+        if math.isinf(value):
+            return "inf" if value > 0 else "-inf"
+        return repr(value)
+    if isinstance(value, str):
+        return json.dumps(value, ensure_ascii=False)
+    raise TypeError(f"cannot write {value!r} to TOML")
