@@ -170,13 +170,34 @@ def make_parser() -> argparse.ArgumentParser:
     )
     query.set_defaults(func=cmd_query)
 
-    export = sub.add_parser("export", help="export a map file to OctoMap, PLY or PNG")
+    export = sub.add_parser(
+        "export", help="export a map file to OctoMap, PLY, PCD, PNG or a nav2 map (PGM + YAML)"
+    )
     export.add_argument("map", help="map file written by run or replay")
-    export.add_argument("--out", required=True, help="FILE.bt | FILE.ot | FILE.ply | FILE.png")
+    export.add_argument(
+        "--out",
+        required=True,
+        help="FILE.bt | FILE.ot | FILE.ply | FILE.pcd | FILE.png | FILE.pgm (nav2: with FILE.yaml)",
+    )
     export.add_argument(
         "--threshold", type=_probability, default=0.5, help="occupied above this P, in (0, 1)"
     )
-    export.add_argument("--z", type=float, default=None, help="height of a 3D map's PNG slice")
+    zs = export.add_mutually_exclusive_group()
+    zs.add_argument("--z", type=float, default=None, help="height of a 3D map's PNG/PGM slice")
+    zs.add_argument(
+        "--z-range",
+        type=float,
+        nargs=2,
+        default=None,
+        metavar=("ZMIN", "ZMAX"),
+        help="3D map to PGM: 2.5D projection of the voxels with centres in [ZMIN, ZMAX]",
+    )
+    export.add_argument(
+        "--occupied-thresh", type=_probability, default=0.65, help="PGM: occupied above this P"
+    )
+    export.add_argument(
+        "--free-thresh", type=_probability, default=0.25, help="PGM: free below this P"
+    )
     export.set_defaults(func=cmd_export)
 
     correct = sub.add_parser(

@@ -4,8 +4,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from octolgp.errors import OctolgpError
+
+if TYPE_CHECKING:
+    import numpy as np
 
 __all__ = ["cmd_correct", "cmd_export", "cmd_query"]
 
@@ -31,17 +35,19 @@ def cmd_query(args: argparse.Namespace) -> int:
 
 
 def cmd_export(args: argparse.Namespace) -> int:
-    """``octolgp export``: a map file as OctoMap ``.bt``/``.ot``, PLY voxel centres or a PNG."""
+    """``octolgp export``: a map file as OctoMap ``.bt``/``.ot``, PLY/PCD, PNG or nav2 PGM/YAML."""
     import numpy as np
 
     from octolgp.export.image import write_png
-    from octolgp.export.ply import write_ply
     from octolgp.mapping.online import OnlineMap
 
     out = Path(args.out)
-    kinds = (".bt", ".ot", ".ply", ".png")
+    kinds = (".bt", ".ot", ".ply", ".pcd", ".png", ".pgm")
     if out.suffix not in kinds:
         raise OctolgpError(f"--out must end in one of {', '.join(kinds)}, got {str(out)!r}")
+    z_range = args.z_range
+    if z_range is not None and out.suffix != ".pgm":
+        raise OctolgpError("--z-range applies to a nav2 map (--out FILE.pgm) only")
     with OnlineMap.open(args.map) as m:
         if out.suffix in (".bt", ".ot"):
             nodes = m.export_octomap(out, threshold=args.threshold)
@@ -49,17 +55,63 @@ def cmd_export(args: argparse.Namespace) -> int:
             return 0
         centres, prob = m.voxels()
         res = m.config.resolution
-    if out.suffix == ".ply":
+    if out.suffix in (".ply", ".pcd"):
+        from octolgp.export.pcd import write_pcd
+        from octolgp.export.ply import write_ply
+
         keep = prob > args.threshold
-        write_ply(out, centres[keep], prob[keep])
+        (write_ply if out.suffix == ".ply" else write_pcd)(out, centres[keep], prob[keep])
         print(f"wrote {out}: {int(keep.sum())} occupied voxel centres with P(occupied)")
         return 0
+    if out.suffix == ".pgm":
+        return _export_nav2(args, out, centres, prob, res, z_range)
     if centres.shape[1] == 3:  # a height slice of a 3D map
         z = args.z if args.z is not None else float(np.median(centres[:, 2]))
         layer = np.floor(centres[:, 2] / res) == np.floor(z / res)
         centres, prob = centres[layer, :2], prob[layer]
     write_png(out, centres, prob, res)
     print(f"wrote {out}: {prob.size} voxels")
+    return 0
+
+
+def _export_nav2(
+    args: argparse.Namespace,
+    out: Path,
+    centres: np.ndarray,
+    prob: np.ndarray,
+    res: float,
+    z_range: tuple[float, float] | None,
+) -> int:
+    """``octolgp export --out FILE.pgm``: a nav2 map, a 3D map sliced (--z) or projected."""
+    from octolgp.export.nav2 import write_nav2_map
+    from octolgp.export.nav2_read import read_nav2_map
+
+    occupied, free = args.occupied_thresh, args.free_thresh
+    if not free < occupied:
+        raise OctolgpError(f"--free-thresh ({free}) must be below --occupied-thresh ({occupied})")
+    if centres.shape[1] == 3 and args.z is None and z_range is None:
+        raise OctolgpError(
+            "a 3D map's nav2 export needs --z HEIGHT (a slice) or --z-range ZMIN ZMAX "
+            "(a 2.5D projection)"
+        )
+    if centres.shape[1] == 2 and (args.z is not None or z_range is not None):
+        raise OctolgpError("--z and --z-range apply to 3D maps only; this map is 2D")
+    yaml = write_nav2_map(
+        out,
+        centres,
+        prob,
+        res,
+        occupied_thresh=occupied,
+        free_thresh=free,
+        z=args.z if centres.shape[1] == 3 else None,
+        z_range=None if z_range is None else (z_range[0], z_range[1]),
+    )
+    cells = read_nav2_map(yaml).cells
+    counts = {name: int((cells == v).sum()) for name, v in (("occupied", 100), ("free", 0))}
+    print(
+        f"wrote {out} and {yaml}: {cells.shape[1]} x {cells.shape[0]} cells, "
+        f"{counts['occupied']} occupied, {counts['free']} free"
+    )
     return 0
 
 
