@@ -55,9 +55,10 @@ def cmd_build(args: argparse.Namespace) -> int:
     from octolgp.batch.build import SCHEDULED
     from octolgp.batch.leafmap import build_tiled
     from octolgp.batch.voxelized import build_voxelized
-    from octolgp.config import MapConfig, OnlineConfig
+    from octolgp.cli.configs import config_path, resolve_config, write_config
 
     out = Path(args.out)
+    config_file = config_path(out)
     if args.method not in SCHEDULED and args.scheduler is not None:
         raise OctolgpError(
             f"--scheduler runs --method {' or '.join(SCHEDULED)} only, got --method {args.method}"
@@ -68,12 +69,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     scan_list = list(itertools.islice(scans, args.limit))
     if args.downsample is not None:
         scan_list = [s.downsample(args.downsample) for s in scan_list]
-    config = MapConfig(
-        dim=first.dim,
-        resolution=args.resolution,
-        online=OnlineConfig(learn_scans=args.learn_scans),
-        memory_budget_mb=args.memory_budget,
-    )
+    config = resolve_config(args, first.dim)
     scheduler = args.scheduler
     if not args.quiet:
         where = "this process" if scheduler is None else f"Dask ({scheduler})"
@@ -115,11 +111,12 @@ def cmd_build(args: argparse.Namespace) -> int:
     stats = m.build_stats
     m.close()
     os.replace(partial, out)
+    write_config(config, config_file, args.config)
     print(
         f"wrote {out}: {len(scan_list)} scans, {int(stats['items'])} training items, "
         f"{int(stats['leaves'])} leaves, {int(stats['voxels'])} voxels in "
         f"{stats['training'] + stats['assign'] + stats['fit'] + stats['store']:.1f} s "
-        f"(fit {stats['fit']:.1f} s)"
+        f"(fit {stats['fit']:.1f} s); config in {config_file}"
     )
     return 0
 
@@ -130,7 +127,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     import json
 
     from octolgp.bench.evaluation import evaluate_log, plot_errors, plot_roc
-    from octolgp.config import MapConfig
+    from octolgp.cli.configs import config_path, resolve_config, write_config
     from octolgp.export.image import write_png
 
     if not (0.0 < args.fraction < 1.0):
@@ -140,7 +137,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
     scan_list = list(itertools.islice(scans, args.limit))
-    config = MapConfig(dim=first.dim, resolution=args.resolution)
+    config = resolve_config(args, first.dim)
 
     def progress(message: str) -> None:
         if not args.quiet:
@@ -163,6 +160,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    write_config(config, config_path(out, folder=True), args.config)
     name = Path(args.scans).name
     plot_roc(report, out / "roc.png", title=f"{name}: held-out scans")
     pictures = ["roc.png"]
@@ -175,11 +173,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
             pictures.append("map.png")
     (out / "results.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
     table = (
-        f"{name}, {len(scan_list)} scans, resolution {args.resolution} m, "
+        f"{name}, {len(scan_list)} scans, resolution {config.resolution} m, "
         f"{args.protocol} protocol: " + report.table()
     )
     (out / "table.md").write_text(table + "\n")
     print(table)
-    written = ", ".join(f"{out}/{f}" for f in [*pictures, "results.json", "table.md"])
+    written = ", ".join(
+        f"{out}/{f}" for f in [*pictures, "results.json", "table.md", "config.toml"]
+    )
     print(f"\nwrote {written}")
     return 0

@@ -1,4 +1,4 @@
-"""Command line: ``octolgp simulate | run | build | replay | query | export | correct | bench | eval``.
+"""Command line: ``octolgp run | build | replay | query | export | eval | dump-config | ...``.
 
 The CLI is the only place that exits. A user error prints one line on stderr and
 exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
@@ -7,7 +7,8 @@ exits 2 (``--debug`` shows the traceback). Heavy modules are imported lazily so
 This module holds the argument parser, its shared option types and groups, and
 :func:`main`; the commands are in :mod:`octolgp.cli.build` (``simulate``, ``build``,
 ``eval``, ``bench``), :mod:`octolgp.cli.online` (``run``, ``replay``) and
-:mod:`octolgp.cli.maps` (``query``, ``export``, ``correct``).
+:mod:`octolgp.cli.maps` (``query``, ``export``, ``correct``); :mod:`octolgp.cli.configs`
+resolves the map configuration (``--config``, ``dump-config``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import NoReturn
 
 from octolgp import __version__
 from octolgp.cli.build import cmd_bench, cmd_build, cmd_eval, cmd_simulate
+from octolgp.cli.configs import add_config_option, add_dump_config
 from octolgp.cli.maps import cmd_correct, cmd_export, cmd_query
 from octolgp.cli.online import cmd_replay, cmd_run
 from octolgp.errors import OctolgpError
@@ -34,6 +36,8 @@ EXAMPLES = """examples:
   octolgp correct intel.octolgp --poses corrections.txt
   octolgp bench paper2d --out bench_out
   octolgp eval data/intel_lab/intel-corrected.log.gz --seeds 5 --out eval_intel
+  octolgp dump-config --resolution 0.05 > intel.toml
+  octolgp run data/intel_lab/intel-corrected.log.gz --config intel.toml --out intel.octolgp
 """
 
 
@@ -81,7 +85,8 @@ def _scan_log_options(p: argparse.ArgumentParser) -> None:
 def _mapping_options(p: argparse.ArgumentParser) -> None:
     """Options shared by the subcommands that map scans online."""
     p.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
-    p.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    add_config_option(p)
+    p.add_argument("--resolution", type=_positive_float, default=None, help="metres (default 0.1)")
     p.add_argument(
         "--jobs",
         type=_positive_int,
@@ -233,7 +238,10 @@ def make_parser() -> argparse.ArgumentParser:
     )
     _scan_log_options(bld)
     bld.add_argument("--out", required=True, help="map file to write (.octolgp, SQLite)")
-    bld.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    add_config_option(bld)
+    bld.add_argument(
+        "--resolution", type=_positive_float, default=None, help="metres (default 0.1)"
+    )
     bld.add_argument(
         "--method",
         choices=["leaf", "lgp", "gp", "mgp", "ogm"],
@@ -277,7 +285,8 @@ def make_parser() -> argparse.ArgumentParser:
         ),
     )
     _scan_log_options(ev)
-    ev.add_argument("--resolution", type=_positive_float, default=0.1, help="metres")
+    add_config_option(ev)
+    ev.add_argument("--resolution", type=_positive_float, default=None, help="metres (default 0.1)")
     ev.add_argument("--seeds", type=_positive_int, default=5, help="random splits")
     ev.add_argument("--fraction", type=_positive_float, default=0.1, help="held-out share")
     ev.add_argument("--run", type=_positive_int, default=40, help="longest held-out run")
@@ -306,6 +315,8 @@ def make_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument("--quiet", action="store_true", help="no progress messages")
     ev.set_defaults(func=cmd_eval)
+
+    add_dump_config(sub, _positive_int, _positive_float)
     return parser
 
 

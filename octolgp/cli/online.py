@@ -1,7 +1,9 @@
 """The online commands: ``run`` (a scan log) and ``replay`` (a Rerun recording).
 
-Both insert scans one at a time into a new (or resumed) map file, optionally streaming the
-mapping to Rerun (``--rerun-save/--rerun-connect/--rerun-serve``, opened by
+Both insert scans one at a time into a new (or resumed) map file, configured by
+:func:`octolgp.cli.configs.resolve_config` (``--config`` and the flags; the resolved config is
+written beside the map as ``NAME.toml``), optionally streaming the mapping to Rerun
+(``--rerun-save/--rerun-connect/--rerun-serve``, opened by
 :func:`octolgp.sinks.rerun.open_recording`). Heavy modules are imported inside the commands.
 """
 
@@ -47,7 +49,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
 
     from tqdm import tqdm
 
-    from octolgp.config import MapConfig, OnlineConfig
+    from octolgp.cli.configs import config_path, resolve_config, write_config
     from octolgp.mapping.online import OnlineMap
 
     out = Path(args.out)
@@ -59,12 +61,10 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
         )
     if args.limit is not None:
         scans = itertools.islice(scans, args.limit)
-    config = MapConfig(
-        dim=first.dim,
-        resolution=args.resolution,
-        online=OnlineConfig(n_jobs=args.jobs, learn_scans=args.learn_scans),
-        memory_budget_mb=args.memory_budget,
-    )
+    config = resolve_config(args, first.dim, n_jobs=args.jobs)
+    config_file = config_path(out)
+    if not resume:
+        write_config(config, config_file, args.config)
     rec = _recording(args)
     sink = None
     if rec is not None:
@@ -79,6 +79,11 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
                 f"--resume: {str(out)!r} is a {m.config.dim}D map at {m.config.resolution:g} m, "
                 f"the scans are {config.dim}D and --resolution is {config.resolution:g} m"
             )
+        try:
+            write_config(m.config, config_file, args.config)
+        except OctolgpError:
+            m.close()
+            raise
         m.sink = m.sink if sink is None else sink
         done = m.n_scans
         scans = itertools.islice(scans, done, None)  # skip what the map already holds
@@ -104,6 +109,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
             rec.flush()
             rec.disconnect()
     print(f"wrote {out}: {n_scans} scans, {n_leaves} leaves, hyperparameters {m.hyperparameters}")
+    print(f"wrote {config_file}: the resolved config")
     if repaired:
         print(
             f"note: {repaired} leaf kernel matrices were not positive definite; repaired by jitter"
