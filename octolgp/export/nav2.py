@@ -257,13 +257,14 @@ def write_nav2_map(
     which = np.where(cell_state == FREE, 0, np.where(cell_state == OCCUPIED, 1, 2))
     rel = index - low
     grid[ny - 1 - rel[:, 1], rel[:, 0]] = lut[which]  # image row 0 is the largest y
-    header = f"P5\n# octolgp occupancy, {resolution!r} m per cell\n{nx} {ny}\n255\n"
+    header = f"P5\n# octolgp occupancy, {float(resolution)!r} m per cell\n{nx} {ny}\n255\n"
     write_bytes(pgm, [header.encode("ascii"), grid.tobytes()])
     origin = low * resolution
     yaml = pgm.with_suffix(".yaml")
+    occ, free = float(occupied_thresh), float(free_thresh)
     text = (
-        f"# octolgp: P(occupied) > {occupied_thresh!r} occupied, < {free_thresh!r} free; the\n"
-        "# thresholds below are the loader's, between the trinary pixels 0, 205 and 254.\n"
+        f"# octolgp: P(occupied) > {occ!r} occupied, < {free!r} free; the thresholds\n"
+        "# below are the loader's, between the trinary pixels 0, 205 and 254.\n"
         f"image: {pgm.name}\nmode: trinary\nresolution: {float(resolution)!r}\n"
         f"origin: [{float(origin[0])!r}, {float(origin[1])!r}, 0.0]\nnegate: 0\n"
         f"occupied_thresh: {LOAD_OCCUPIED_THRESH!r}\nfree_thresh: {LOAD_FREE_THRESH!r}\n"

@@ -72,7 +72,7 @@ def _read_lines(path: Path, what: str) -> list[str]:
 
 
 def _rigid(matrices: FloatArray) -> FloatArray:
-    """Which 3 x 4 rows-major matrices ``(n, 3, 4)`` hold a rotation, shape (n,) bool."""
+    """Which 3 x 4 matrices ``(n, 3, 4)`` have a rotation as their 3 x 3 part, shape (n,) bool."""
     R = matrices[:, :, :3]
     gram = np.einsum("nji,njk->nik", R, R)  # R^T R
     ortho = np.abs(gram - np.eye(3)).max(axis=(1, 2)) < _RIGID_TOL
