@@ -6,7 +6,7 @@ stamp, converts it with :meth:`octolgp.Scan.from_laserscan` / :meth:`octolgp.Sca
 and inserts it into an :class:`octolgp.OnlineMap`. Once a second it publishes a 2D map as a
 ``nav_msgs/OccupancyGrid`` on ``/octolgp/map`` (transient local, as ``map_server`` does, so RViz
 and nav2 get the latest map when they subscribe): P(occupied) as 0..100, unknown as -1. On
-shutdown (Ctrl-C) it saves the map file and its resolved config (``NAME.toml``) beside it.
+shutdown (Ctrl-C) it saves the map file and its resolved config (``MAP.octolgp.toml``) beside it.
 
 Run it with ROS 2 sourced (Humble or later; rclpy, tf2_ros, sensor_msgs, nav_msgs)::
 
@@ -58,7 +58,7 @@ except ImportError as exc:  # no ROS 2 here: say what to do, without a traceback
 
 from octolgp import MapConfig, OctolgpError, OnlineMap, Scan
 from octolgp.export.image import occupancy_raster
-from octolgp.io.ros_msgs import transform_matrix
+from octolgp.geometry.rotations import quaternion_to_matrix
 
 MAP_TOPIC = "/octolgp/map"
 PUBLISH_PERIOD = 1.0  # seconds between OccupancyGrid messages
@@ -123,7 +123,11 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
             if not self.fixed_frame:
                 self.fixed_frame = frame  # keep one world frame for the whole map
                 self.get_logger().info(f"fixed frame: {frame}")
-            return transform_matrix(t.transform.translation, t.transform.rotation)
+            q, p = t.transform.rotation, t.transform.translation
+            T = np.eye(4)
+            T[:3, :3] = quaternion_to_matrix([q.x, q.y, q.z, q.w], order="xyzw")
+            T[:3, 3] = (p.x, p.y, p.z)
+            return T
         self.skip(f"no pose for {msg.header.frame_id!r} in {' or '.join(frames)}: {why}")
         return None
 
@@ -198,7 +202,7 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
         self.map.flush()  # learn now if the run was shorter than learn_scans
         self.out.parent.mkdir(parents=True, exist_ok=True)
         self.map.save(self.out)
-        self.out.with_suffix(".toml").write_text(self.map.config.to_toml())
+        self.out.with_name(self.out.name + ".toml").write_text(self.map.config.to_toml())
         self.get_logger().info(
             f"saved {self.out}: {self.map.n_scans} scans, {len(self.map.store)} leaves "
             f"({self.skipped} skipped)"

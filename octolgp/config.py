@@ -14,6 +14,7 @@ import os
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import MappingProxyType
 from typing import Any
 
 from octolgp.errors import MapFileNotFound, OctolgpError
@@ -625,14 +626,17 @@ class MapConfig:
         return "\n".join(lines) + "\n"
 
 
-_SECTIONS: dict[str, type] = {
-    "hyperparameters": Hyperparameters,
-    "training": TrainingConfig,
-    "partition": PartitionConfig,
-    "learning": LearningConfig,
-    "ogm": OgmConfig,
-    "online": OnlineConfig,
-}
+_SECTIONS: MappingProxyType[str, type] = MappingProxyType(
+    {
+        "hyperparameters": Hyperparameters,
+        "training": TrainingConfig,
+        "partition": PartitionConfig,
+        "learning": LearningConfig,
+        "ogm": OgmConfig,
+        "online": OnlineConfig,
+    }
+)
+"""The sections of :class:`MapConfig`: TOML table name -> dataclass."""
 
 
 def _toml_named(message: str) -> str:

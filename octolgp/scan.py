@@ -9,6 +9,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
+from octolgp.ros_msgs import laserscan_beams, pointcloud2_points, stamp_seconds
 
 FloatArray = NDArray[np.float64]
 
@@ -186,7 +187,7 @@ class Scan:
         ``[range_min, range_max)`` is a hit; ``+inf`` or ``>= range_max`` is a no-return (a
         beam of length ``range_max``, :attr:`max_range` 1 mm below it); ``NaN``, ``-inf``
         and readings below ``range_min`` are dropped (REP 117). The decoder is the ROS bag
-        reader's (:mod:`octolgp.io.ros_msgs`).
+        reader's (:mod:`octolgp.ros_msgs`).
 
         Parameters
         ----------
@@ -208,17 +209,16 @@ class Scan:
             angle_increment must be > 0, got 0.0``), a bad pose (shape, NaN or inf, not
             rigid), or a scan with no beam left.
         """
-        from octolgp.io.ros_msgs import laserscan_to_scan
-
         try:
-            scan = laserscan_to_scan(msg, pose, max_range=max_range, stamp=stamp)
+            beams = laserscan_beams(msg, pose, max_range=max_range)
+            stamp = stamp_seconds(msg) if stamp is None else stamp
         except OctolgpError as exc:
             raise OctolgpError(f"Scan.from_laserscan: {exc}") from None
-        if scan is None:
+        if beams is None:
             raise OctolgpError(
                 "Scan.from_laserscan: no beam left (every range is NaN, -inf or below range_min)"
             )
-        return scan
+        return cls(*beams, stamp)
 
     @classmethod
     def from_pointcloud2(
@@ -237,7 +237,7 @@ class Scan:
         ``z`` may be FLOAT32 or FLOAT64 at any offsets, in either byte order, among any
         other fields; rows may be padded to ``row_step``. Points with a NaN or inf
         coordinate (the holes of an organised cloud) are dropped. The decoder is the ROS bag
-        reader's (:mod:`octolgp.io.ros_msgs`).
+        reader's (:mod:`octolgp.ros_msgs`).
 
         Parameters
         ----------
@@ -257,15 +257,14 @@ class Scan:
             On a malformed message (naming the field: ``Scan.from_pointcloud2: field 'z' at
             offset 8 overruns point_step 8``), a bad pose, or a cloud with no finite point.
         """
-        from octolgp.io.ros_msgs import pointcloud2_to_scan
-
         try:
-            scan = pointcloud2_to_scan(msg, pose, max_range=max_range, stamp=stamp)
+            points = pointcloud2_points(msg, pose, max_range=max_range)
+            stamp = stamp_seconds(msg) if stamp is None else stamp
         except OctolgpError as exc:
             raise OctolgpError(f"Scan.from_pointcloud2: {exc}") from None
-        if scan is None:
+        if points is None:
             raise OctolgpError("Scan.from_pointcloud2: no finite point in the cloud")
-        return scan
+        return cls(*points, stamp)
 
     def downsample(self, voxel: float) -> Scan:
         """Keep one endpoint per voxel of edge ``voxel`` (a voxel-grid filter).

@@ -81,24 +81,12 @@ def resolve_config(
 def config_path(out: str | Path, folder: bool = False) -> Path:
     """Where the resolved config of ``--out`` goes.
 
-    ``FOLDER/config.toml`` for a results folder (``eval``); beside a map file, the map's name
-    with ``.toml`` (``intel.octolgp`` -> ``intel.toml``), so maps sharing a folder keep their
-    own.
-
-    Raises
-    ------
-    OctolgpError
-        If a map file's ``--out`` itself ends in ``.toml``.
+    ``FOLDER/config.toml`` for a results folder (``eval``); beside a map file, the map's file
+    name with ``.toml`` added (``intel.octolgp`` -> ``intel.octolgp.toml``), so maps sharing a
+    folder keep their own and a user's ``intel.toml`` is not the map's.
     """
     p = Path(out)
-    if folder:
-        return p / "config.toml"
-    if p.suffix.lower() == ".toml":
-        raise OctolgpError(
-            f"--out {str(p)!r}: a map file must not end in .toml (its config is written "
-            "beside it as NAME.toml)"
-        )
-    return p.with_suffix(".toml")
+    return p / "config.toml" if folder else p.with_name(p.name + ".toml")
 
 
 def write_config(config: MapConfig, target: Path, given: str | None = None) -> Path:

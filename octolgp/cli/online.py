@@ -2,7 +2,7 @@
 
 Both insert scans one at a time into a new (or resumed) map file, configured by
 :func:`octolgp.cli.configs.resolve_config` (``--config`` and the flags; the resolved config is
-written beside the map as ``NAME.toml``), optionally streaming the mapping to Rerun
+written beside the map as ``MAP.octolgp.toml``), optionally streaming the mapping to Rerun
 (``--rerun-save/--rerun-connect/--rerun-serve``, opened by
 :func:`octolgp.sinks.rerun.open_recording`). Heavy modules are imported inside the commands.
 """

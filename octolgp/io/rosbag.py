@@ -17,7 +17,7 @@ One scan topic is read, in bag (receive-time) order, and posed in a fixed frame:
   or not, decoded with one numpy structured dtype. Points with a non-finite coordinate are
   dropped. A cloud has no no-returns unless ``max_range`` is given.
 
-Messages are decoded by :mod:`octolgp.io.ros_msgs`, the code behind
+Messages are decoded by :mod:`octolgp.ros_msgs`, the code behind
 :meth:`Scan.from_laserscan <octolgp.scan.Scan.from_laserscan>` and
 :meth:`Scan.from_pointcloud2 <octolgp.scan.Scan.from_pointcloud2>`.
 
@@ -59,14 +59,10 @@ from typing import Any
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.geometry.rotations import quaternion_to_matrix
 from octolgp.io.base import ScanStream
 from octolgp.io.carmen import NO_RETURN_MARGIN
-from octolgp.io.ros_msgs import (
-    RosMessageError,
-    laserscan_to_scan,
-    pointcloud2_to_scan,
-    transform_matrix,
-)
+from octolgp.ros_msgs import RosMessageError, laserscan_beams, pointcloud2_points
 from octolgp.scan import FloatArray, Scan
 
 __all__ = [
@@ -134,6 +130,20 @@ def _stamp_ns(header: Any, fallback: int) -> int:
     """Header stamp in integer nanoseconds; ``fallback`` (the bag time) when it is zero."""
     ns = int(header.stamp.sec) * _NS + int(header.stamp.nanosec)
     return ns if ns != 0 else fallback
+
+
+def _transform(translation: Any, rotation: Any) -> FloatArray:
+    """4x4 homogeneous transform from a ROS ``Vector3``/``Point`` and a ``Quaternion``."""
+    t = np.array([translation.x, translation.y, translation.z], dtype=np.float64)
+    q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=np.float64)
+    if not (np.isfinite(t).all() and np.isfinite(q).all()):
+        raise RosMessageError("NaN or inf in a transform")
+    if float(np.linalg.norm(q)) < 1e-6:
+        raise RosMessageError("zero quaternion")
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(q, order="xyzw")
+    T[:3, 3] = t
+    return T
 
 
 def _inverse(T: FloatArray) -> FloatArray:
@@ -247,7 +257,7 @@ class TfBuffer:
 def _pose_of(msg: Any, msgtype: str) -> FloatArray:
     """The 4x4 pose of a pose-topic message."""
     pose = msg.pose if msgtype == "geometry_msgs/msg/PoseStamped" else msg.pose.pose
-    return transform_matrix(pose.position, pose.orientation)
+    return _transform(pose.position, pose.orientation)
 
 
 class RosbagReader(ScanStream):
@@ -526,7 +536,7 @@ class RosbagReader(ScanStream):
     @staticmethod
     def _add_tf(tf: TfBuffer, msg: Any, bag_ns: int, static: bool) -> None:
         for t in msg.transforms:
-            T = transform_matrix(t.transform.translation, t.transform.rotation)
+            T = _transform(t.transform.translation, t.transform.rotation)
             parent, child = t.header.frame_id.lstrip("/"), t.child_frame_id.lstrip("/")
             if not parent or not child or parent == child:
                 raise RosMessageError(f"bad tf link {parent!r} -> {child!r}")
@@ -538,8 +548,10 @@ class RosbagReader(ScanStream):
         if self.scan_type == LASERSCAN:  # posed in the plane: (x, y, yaw)
             yaw = math.atan2(T_world[1, 0], T_world[0, 0])
             pose = np.array([T_world[0, 3], T_world[1, 3], yaw])
-            return laserscan_to_scan(msg, pose, max_range=self.max_range, stamp=seconds)
-        return pointcloud2_to_scan(msg, T_world, max_range=self.max_range, stamp=seconds)
+            beams = laserscan_beams(msg, pose, max_range=self.max_range)
+        else:
+            beams = pointcloud2_points(msg, T_world, max_range=self.max_range)
+        return None if beams is None else Scan(*beams, seconds)
 
 
 def _static(topic: str) -> bool:

@@ -1,20 +1,21 @@
-"""ROS 2 ``sensor_msgs`` messages to scans: the one decoder behind the bag reader and the converters.
+"""ROS 2 ``sensor_msgs`` messages to beams: the one decoder behind the converters and bag reader.
 
 :meth:`Scan.from_laserscan <octolgp.scan.Scan.from_laserscan>`,
 :meth:`Scan.from_pointcloud2 <octolgp.scan.Scan.from_pointcloud2>` and
-:class:`~octolgp.io.rosbag.RosbagReader` all call :func:`laserscan_to_scan` and
-:func:`pointcloud2_to_scan`. Messages are duck-typed by their field names, so the classes of
-``rclpy`` (``array.array`` ranges, ``bytes``/``array.array`` data), of ``rosbags`` (numpy arrays)
-and any look-alike serve.
+:class:`~octolgp.io.rosbag.RosbagReader` build their scans from what :func:`laserscan_beams`
+and :func:`pointcloud2_points` return: the sensor origin, the world-frame endpoints and the
+no-return threshold. Messages are duck-typed by their field names, so the classes of ``rclpy``
+(``array.array`` ranges and data), of ``rosbags`` (numpy arrays) and any look-alike serve. This
+module imports no other part of octolgp but its errors, so :mod:`octolgp.scan` can use it.
 
 - ``LaserScan``: beam ``i`` points at ``angle_min + i * angle_increment``; when ``angle_max``
   agrees with that to float32 round-off (``|(angle_max - angle_min) / (n - 1) -
   angle_increment| <= 1e-6 |angle_increment|``) the angles are interpolated from ``angle_min``
   to ``angle_max`` in float64, so the float32 increment does not accumulate over the fan. A
   reading ``r`` with ``range_min <= r < range_max`` is a hit; ``r >= range_max`` or ``+inf`` is
-  a no-return, kept as a beam of length ``range_max`` with :attr:`Scan.max_range` set
-  :data:`NO_RETURN_MARGIN` below it; ``NaN``, ``-inf`` and ``r < range_min`` are dropped (REP
-  117).
+  a no-return, kept as a beam of length ``range_max`` with the no-return threshold
+  :data:`NO_RETURN_MARGIN` below it (as for CARMEN logs); ``NaN``, ``-inf`` and ``r <
+  range_min`` are dropped (REP 117).
 - ``PointCloud2``: fields ``x``, ``y``, ``z`` of type FLOAT32 or FLOAT64 at any offsets and
   ``point_step`` (other fields are skipped as padding), either byte order, rows padded to
   ``row_step`` or not, organised (``height > 1``) or not, decoded with one numpy structured
@@ -31,22 +32,27 @@ from types import MappingProxyType
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.geometry.rotations import quaternion_to_matrix
-from octolgp.io.carmen import NO_RETURN_MARGIN
-from octolgp.scan import FloatArray, Scan
 
 __all__ = [
     "NO_RETURN_MARGIN",
+    "Beams",
     "RosMessageError",
-    "laserscan_to_scan",
-    "pointcloud2_to_scan",
+    "laserscan_beams",
+    "pointcloud2_points",
     "pose_matrix",
     "stamp_seconds",
-    "transform_matrix",
 ]
+
+FloatArray = NDArray[np.float64]
+Beams = tuple[FloatArray, FloatArray, float | None]
+"""``(origin (d,), points (n, d), max_range)``: a :class:`~octolgp.scan.Scan`'s fields, metres."""
+
+NO_RETURN_MARGIN = 1e-3
+"""Metres between a LaserScan's ``range_max`` and the scan's no-return threshold; the same as
+:data:`octolgp.io.carmen.NO_RETURN_MARGIN`."""
 
 _ANGLE_RTOL = 1e-6
 _RIGID_ATOL = 1e-6  # |R^T R - I| and |bottom row - (0, ..., 1)| allowed in a pose matrix
@@ -106,26 +112,6 @@ def stamp_seconds(msg: Any) -> float | None:
     if sec == 0 and nanosec == 0:
         return None
     return sec + nanosec * 1e-9
-
-
-def transform_matrix(translation: Any, rotation: Any) -> FloatArray:
-    """4x4 homogeneous transform from a ROS ``Vector3``/``Point`` and a ``Quaternion``.
-
-    Raises
-    ------
-    RosMessageError
-        On a NaN or inf, or a zero quaternion.
-    """
-    t = np.array([translation.x, translation.y, translation.z], dtype=np.float64)
-    q = np.array([rotation.x, rotation.y, rotation.z, rotation.w], dtype=np.float64)
-    if not (np.isfinite(t).all() and np.isfinite(q).all()):
-        raise RosMessageError("NaN or inf in a transform")
-    if float(np.linalg.norm(q)) < 1e-6:
-        raise RosMessageError("zero quaternion")
-    T = np.eye(4)
-    T[:3, :3] = quaternion_to_matrix(q, order="xyzw")
-    T[:3, 3] = t
-    return T
 
 
 def pose_matrix(pose: ArrayLike, name: str = "pose") -> FloatArray:
@@ -218,14 +204,8 @@ def _decode_laser(msg: Any, limit: float | None) -> tuple[FloatArray, FloatArray
     return out[keep], angles[keep], rmax
 
 
-def laserscan_to_scan(
-    msg: Any,
-    pose: ArrayLike,
-    *,
-    max_range: float | None = None,
-    stamp: float | None = None,
-) -> Scan | None:
-    """A LaserScan as a :class:`~octolgp.scan.Scan`, or ``None`` when no beam is left.
+def laserscan_beams(msg: Any, pose: ArrayLike, *, max_range: float | None = None) -> Beams | None:
+    """A LaserScan's beams in the world frame, or ``None`` when no beam is left.
 
     Parameters
     ----------
@@ -233,12 +213,16 @@ def laserscan_to_scan(
         Any object with ``angle_min``, ``angle_increment``, ``ranges``, ``range_min`` and
         ``range_max`` (``angle_max`` optional).
     pose : array_like
-        The laser's world pose: ``(x, y, theta)`` or a 3x3 matrix (a 2D scan), or a 4x4
-        matrix (a 3D scan in the laser's xy plane).
+        The laser's world pose: ``(x, y, theta)`` or a 3x3 matrix (2D beams), or a 4x4
+        matrix (3D beams in the laser's xy plane).
     max_range : float, optional
         Metres; the no-return threshold used instead of ``range_max`` when smaller.
-    stamp : float, optional
-        Seconds; default: the header stamp (``None`` if absent or zero).
+
+    Returns
+    -------
+    Beams or None
+        The origin ``(d,)``, the endpoints ``(n, d)`` and the no-return threshold
+        (``range_max`` less :data:`NO_RETURN_MARGIN`).
 
     Raises
     ------
@@ -249,18 +233,17 @@ def laserscan_to_scan(
     """
     p = pose_matrix(pose)
     ranges, angles, limit = _decode_laser(msg, max_range)
-    if stamp is None:
-        stamp = stamp_seconds(msg)
     if ranges.size == 0:
         return None
     threshold = limit - NO_RETURN_MARGIN if limit > NO_RETURN_MARGIN else None
     if p.shape == (3, 3):
         p = np.array([p[0, 2], p[1, 2], math.atan2(p[1, 0], p[0, 0])])
-    if p.shape == (3,):
-        return Scan.from_ranges(p, ranges, angles, threshold, stamp)
+    if p.shape == (3,):  # as Scan.from_ranges
+        phi = p[2] + angles
+        points = p[:2] + ranges[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+        return p[:2].copy(), points, threshold
     local = np.stack([ranges * np.cos(angles), ranges * np.sin(angles), np.zeros_like(ranges)], 1)
-    points = local @ p[:3, :3].T + p[:3, 3]
-    return Scan(p[:3, 3].copy(), points, threshold, stamp)
+    return p[:3, 3].copy(), local @ p[:3, :3].T + p[:3, 3], threshold
 
 
 def _cloud_dtype(msg: Any, step: int) -> np.dtype[Any]:
@@ -326,14 +309,10 @@ def _decode_cloud(msg: Any) -> FloatArray:
     return xyz[np.isfinite(xyz).all(axis=1)]
 
 
-def pointcloud2_to_scan(
-    msg: Any,
-    pose: ArrayLike,
-    *,
-    max_range: float | None = None,
-    stamp: float | None = None,
-) -> Scan | None:
-    """A PointCloud2 as a 3D :class:`~octolgp.scan.Scan`, or ``None`` when no point is left.
+def pointcloud2_points(
+    msg: Any, pose: ArrayLike, *, max_range: float | None = None
+) -> Beams | None:
+    """A PointCloud2's finite points in the world frame, or ``None`` when none is left.
 
     Parameters
     ----------
@@ -344,9 +323,12 @@ def pointcloud2_to_scan(
         The sensor's world pose: a 4x4 matrix, or ``(x, y, theta)`` (the sensor at z = 0,
         turned by ``theta`` about z).
     max_range : float, optional
-        Metres; points at least this far from the sensor are no-returns.
-    stamp : float, optional
-        Seconds; default: the header stamp (``None`` if absent or zero).
+        Metres; returned as the no-return threshold (points this far away are no-returns).
+
+    Returns
+    -------
+    Beams or None
+        The origin ``(3,)``, the points ``(n, 3)`` and ``max_range``.
 
     Raises
     ------
@@ -362,9 +344,6 @@ def pointcloud2_to_scan(
         c, s = math.cos(p[2]), math.sin(p[2])
         p = np.array([[c, -s, 0, p[0]], [s, c, 0, p[1]], [0, 0, 1, 0], [0, 0, 0, 1.0]])
     xyz = _decode_cloud(msg)
-    if stamp is None:
-        stamp = stamp_seconds(msg)
     if xyz.shape[0] == 0:
         return None
-    points = xyz @ p[:3, :3].T + p[:3, 3]
-    return Scan(p[:3, 3].copy(), points, max_range, stamp)
+    return p[:3, 3].copy(), xyz @ p[:3, :3].T + p[:3, 3], max_range
