@@ -4,14 +4,18 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import io
 import os
 import shutil
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import time
+import urllib.request
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -23,7 +27,7 @@ from octolgp.cli import main
 from octolgp.io.rrd_read import read_rrd
 from octolgp.mapping.online import ScanUpdate
 from octolgp.sinks.base import MapChange
-from octolgp.sinks.rerun import RerunSink
+from octolgp.sinks.rerun import UNKNOWN_GREY, RerunSink, default_blueprint, open_recording
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
 HP = Hyperparameters(length_scale=0.8, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
@@ -42,17 +46,19 @@ def _scans(dim: int, n: int = 4) -> list[Scan]:
 
 
 class Recorder(RerunSink):
-    """A RerunSink that also remembers which leaves each update refitted."""
+    """A RerunSink that also remembers which leaves each update refitted, and where."""
 
-    def __init__(self, rec: rr.RecordingStream) -> None:
-        super().__init__(rec, rays=7, uncertainty=True)
+    def __init__(self, rec: rr.RecordingStream, **options: Any) -> None:
+        super().__init__(rec, **({"rays": 7, "uncertainty": True} | options))
         self.refits: collections.Counter[int] = collections.Counter()
         self.updates = 0
+        self.corners: list[tuple[int, list[np.ndarray]]] = []  # (scan, refit leaves' lo)
 
     def on_update(self, update: ScanUpdate, change: MapChange) -> None:
         leaves = list(change.leaves)  # an iterator: read once, for both
         super().on_update(update, dataclasses.replace(change, leaves=leaves))
         self.refits.update(leaf.key for leaf in leaves)
+        self.corners.append((update.scan, [leaf.lo for leaf in leaves]))
         self.updates += 1
 
 
@@ -63,36 +69,198 @@ def _rows(path: Path) -> collections.Counter[str]:
     return rows
 
 
-@pytest.mark.parametrize("dim", [2, 3])
-def test_each_leaf_is_logged_exactly_when_refitted(tmp_path: Path, dim: int) -> None:
-    rrd = tmp_path / "m.rrd"
+def _column(path: Path, prefix: str, column: str) -> list[tuple[str, int | None, Any]]:
+    """``(entity, scan or None when static, value)`` of every row of entities under a prefix."""
+    out: list[tuple[str, int | None, Any]] = []
+    for chunk in RrdReader(path).stream():
+        entity = str(chunk.entity_path)
+        batch = chunk.to_record_batch()
+        if not entity.startswith(prefix) or column not in batch.schema.names:
+            continue
+        values = batch.column(column)
+        scans = batch.column("scan").to_pylist() if "scan" in batch.schema.names else None
+        for i in range(batch.num_rows):  # one iteration per row
+            if values[i].is_valid:
+                out.append((entity, None if scans is None else scans[i], values[i]))
+    return out
+
+
+def _latest(rows: list[tuple[str, int | None, Any]]) -> dict[str, Any]:
+    """Each entity's value at its last scan (static rows count as earliest)."""
+    best: dict[str, tuple[int, Any]] = {}
+    for entity, scan, value in rows:  # one iteration per row
+        at = -1 if scan is None else scan
+        if entity not in best or at >= best[entity][0]:
+            best[entity] = (at, value)
+    return {e: v for e, (_, v) in best.items()}
+
+
+def _png_of(value: Any) -> np.ndarray:
+    """The grey image of one ``EncodedImage:blob`` cell."""
+    from PIL import Image
+
+    blob = bytes(value.values[0].values.to_numpy(zero_copy_only=False))
+    return np.asarray(Image.open(io.BytesIO(blob)))
+
+
+def _record(path: Path, scans: list[Scan], dim: int, **options: Any) -> tuple[Recorder, Any]:
+    """Map ``scans`` then ``scans[:2]`` again, streaming to ``path``; the sink and the map."""
     rec = rr.RecordingStream("octolgp-test")
-    rec.save(rrd)
-    sink = Recorder(rec)
-    scans = _scans(dim)
-    with OnlineMap(MapConfig(dim=dim, resolution=0.2, hyperparameters=HP), sink=sink) as m:
-        m.insert_scans(scans + scans[:2])  # the repeats refit nothing
-        n_leaves = len(m.store)
+    rec.save(path)
+    sink = Recorder(rec, **options)
+    m = OnlineMap(MapConfig(dim=dim, resolution=0.2, hyperparameters=HP), sink=sink)
+    m.insert_scans(scans + scans[:2])  # the repeats refit nothing
     rec.flush()
     rec.disconnect()
-    rows = _rows(rrd)
+    return sink, m
+
+
+@pytest.mark.parametrize("steps", [32, 255])
+def test_2d_tiles_are_the_maps_occupancy(tmp_path: Path, steps: int) -> None:
+    """The last image of each tile is the map's grey occupancy, within half a grey step."""
+    rrd, tile, res = tmp_path / "m.rrd", 32, 0.2
+    _, m = _record(rrd, _scans(2), 2, tile=tile, grey_steps=steps)
+    with m:
+        centres, prob = m.voxels()
+    cells = np.floor(centres / res).astype(np.int64)
+    expected: dict[str, np.ndarray] = {}
+    for (cx, cy), p in zip(cells, prob, strict=True):  # one iteration per voxel
+        tx, ty = cx // tile, cy // tile
+        grid = expected.setdefault(f"/map/tiles/{tx}_{ty}", np.full((tile, tile), np.nan))
+        grid[tile - 1 - (cy - ty * tile), cx - tx * tile] = 255.0 * (1.0 - p)  # row 0: top
+    images = _latest(_column(rrd, "/map/tiles/", "EncodedImage:blob"))
+    assert set(images) == set(expected)
+    tolerance = 255.0 / (2 * steps) + 0.5  # quantisation to steps + 1 levels, then rounding
+    for entity, want in expected.items():  # one iteration per tile
+        got = _png_of(images[entity]).astype(np.float64)
+        assert got.shape == (tile, tile)
+        known = ~np.isnan(want)
+        assert np.abs(got[known] - want[known]).max() <= tolerance
+        assert np.all(got[~known] == UNKNOWN_GREY)  # cells no leaf covers: unknown grey
+    # each tile is placed once, static: x0 and -y1 of its cells, one pixel per cell
+    placed = _column(rrd, "/map/tiles/", "Transform3D:translation")
+    assert sorted(e for e, scan, _ in placed) == sorted(expected)
+    assert all(scan is None for _, scan, _ in placed)
+    for entity, _, value in placed:  # one iteration per tile
+        tx, ty = (int(v) for v in entity.rsplit("/", 1)[1].split("_"))
+        want_t = [tx * tile * res, -(ty + 1) * tile * res, 0.0]
+        np.testing.assert_allclose(value.as_py()[0], want_t, atol=1e-5)
+
+
+def test_2d_tiles_are_logged_only_when_a_scan_changed_them(tmp_path: Path) -> None:
+    rrd, tile, res = tmp_path / "m.rrd", 32, 0.2
+    sink, m = _record(rrd, _scans(2), 2, tile=tile)
+    m.close()
+    logged: dict[int, set[str]] = collections.defaultdict(set)
+    for entity, scan, _ in _column(rrd, "/map/tiles/", "EncodedImage:blob"):
+        assert scan is not None
+        logged[scan].add(entity)
+    n_tiles = len({e for tiles in logged.values() for e in tiles})
+    assert n_tiles >= 4
+    for scan, corners in sink.corners:  # one iteration per update
+        cells = [np.rint(lo / res).astype(np.int64) // tile for lo in corners]
+        touched = {f"/map/tiles/{tx}_{ty}" for tx, ty in cells}
+        assert logged.get(scan, set()) <= touched  # a tile no refit leaf lies in: not logged
     assert sink.updates == 6
-    assert len(sink.refits) == n_leaves
-    static = 1 if dim == 2 else 0  # a 2D tile's quad is logged once, static
-    for key, count in sink.refits.items():
-        assert rows[f"/world/map/leaves/{key}"] == count + static
-        assert rows[f"/world/map/variance/{key}"] == count
-    assert sum(sink.refits.values()) < 6 * n_leaves  # only what changed
+    assert not logged.get(5)  # the repeats refit nothing
+    assert not logged.get(6)
+    assert sum(len(t) for t in logged.values()) < sink.updates * n_tiles
+    rows = _rows(rrd)
+    assert not any(e.startswith("/world/map/leaves") for e in rows)  # no entity per leaf
     assert rows["/metrics/insert_seconds"] == 6
     assert rows["/world/sensor/points"] == 6
-    assert rows["/world/sensor/rays"] == 6
+    assert rows["/map/scan"] == 6 + 1  # positions per scan, the style once (static)
+    assert rows["/map/rays"] == 6
+    assert sum(v for e, v in rows.items() if e.startswith("/map/variance/")) > 0
     # the scans come back bit for bit
     back = list(read_rrd(rrd))
+    scans = _scans(2)
     assert len(back) == 6
     for a, b in zip(scans + scans[:2], back, strict=True):
         assert np.array_equal(a.points, b.points)
         assert np.array_equal(a.origin, b.origin)
         assert a.stamp == b.stamp
+    # and so do the points of the sensor entity (only it is posed)
+    posed = list(read_rrd(rrd, points="world/sensor/points"))
+    np.testing.assert_allclose(posed[0].points, scans[0].points, atol=1e-5)
+
+
+def test_3d_regions_hold_the_occupied_voxels(tmp_path: Path) -> None:
+    rrd, res = tmp_path / "m.rrd", 0.2
+    _, m = _record(rrd, _scans(3), 3, region=32)
+    with m:
+        centres, prob = m.voxels()
+        n_leaves = len(m.store)
+    want = {tuple(k) for k in np.floor(centres[prob > 0.5] / res).astype(np.int64)}
+    boxes = _latest(_column(rrd, "/world/map/voxels/", "Boxes3D:centers"))
+    halves = _latest(_column(rrd, "/world/map/voxels/", "Boxes3D:half_sizes"))
+    assert 0 < len(boxes) < n_leaves  # one entity per region, not per leaf
+    got: set[tuple[int, ...]] = set()
+    for entity, value in boxes.items():  # one iteration per region
+        c = np.asarray(value.as_py(), dtype=np.float64)
+        h = np.broadcast_to(np.asarray(halves[entity].as_py(), dtype=np.float64), c.shape)
+        for centre, half in zip(c, h, strict=True):  # one iteration per box
+            n = np.rint(2 * half / res).astype(int)  # voxels per edge (a pruned leaf: side)
+            offsets = np.stack(np.meshgrid(*[np.arange(k) for k in n], indexing="ij"), -1)
+            lo = centre - half + 0.5 * res
+            keys = np.floor((lo + res * offsets.reshape(-1, 3)) / res + 1e-6).astype(np.int64)
+            got.update(tuple(k) for k in keys)
+    assert got == want
+    rows = _rows(rrd)
+    assert rows["/world/sensor/points"] == 6
+    assert rows["/world/sensor/rays"] == 6
+    assert sum(v for e, v in rows.items() if e.startswith("/world/map/variance/")) > 0
+    assert len(list(read_rrd(rrd))) == 6
+
+
+def _activations(path: Path) -> list[tuple[bool, bool]]:
+    """``(make_active, make_default)`` of each blueprint activation command in an RRD file.
+
+    Messages are ``kind: u64, len: u64, payload`` (kind 3: BlueprintActivationCommand, a
+    protobuf: 1 blueprint id, 2 make_active, 3 make_default; false fields are omitted).
+    """
+    data, off, out = path.read_bytes(), 12, []
+    while off + 16 <= len(data):
+        if data[off : off + 4] == b"RRF2":
+            off += 12
+            continue
+        kind, length = struct.unpack("<QQ", data[off : off + 16])
+        payload = data[off + 16 : off + 16 + length]
+        if kind == 0:
+            break
+        if kind == 3:
+            assert payload[0] == 0x0A  # field 1, the store id: skip it
+            i, size, shift = 1, 0, 0
+            while True:  # varint length
+                size |= (payload[i] & 0x7F) << shift
+                shift += 7
+                i += 1
+                if payload[i - 1] < 0x80:
+                    break
+            flags = payload[i + size :]
+            out.append((b"\x10\x01" in flags, b"\x18\x01" in flags))
+        off += 16 + length
+    return out
+
+
+@pytest.mark.parametrize("how", ["sink", "open_recording"])
+def test_the_blueprint_is_a_default_blueprint(tmp_path: Path, how: str) -> None:
+    """Sent as the default, never made active: a layout the user made is kept."""
+    rrd = tmp_path / "m.rrd"
+    if how == "sink":
+        rec = rr.RecordingStream("octolgp-test")
+        rec.save(rrd)
+        sink = RerunSink(rec)
+    else:
+        rec, url = open_recording("octolgp-test", save=rrd, blueprint=default_blueprint(2))
+        assert url is None
+        sink = RerunSink(rec, blueprint=False)
+    with OnlineMap(MapConfig(dim=2, resolution=0.2, hyperparameters=HP), sink=sink) as m:
+        m.insert_scans(_scans(2))
+    rec.flush()
+    rec.disconnect()
+    assert _activations(rrd) == [(False, True)]
+    assert len(RrdReader(rrd).blueprints()) == 1
 
 
 def test_streaming_does_not_change_the_map(tmp_path: Path) -> None:
@@ -128,6 +296,13 @@ def test_run_then_replay_gives_the_same_map(tmp_path: Path) -> None:
     common = ["--learn-scans", "5", "--quiet", "--resolution", "0.1"]
     assert main(["run", str(INTEL20), "--out", str(a), "--rerun-save", str(rrd), *common]) == 0
     assert main(["replay", str(rrd), "--out", str(b), *common]) == 0
+    # the view is a few tiles, not an entity per leaf, and the recording stays small
+    with OnlineMap.open(a) as m:
+        n_leaves = len(m.store)
+    assert len(_rows(rrd)) < n_leaves / 10
+    # 74 kB per scan here (every tile is new; 1,230 kB per scan with one entity per leaf)
+    assert rrd.stat().st_size / len(list(load_scans(INTEL20))) < 100e3
+    assert _activations(rrd) == [(False, True)]  # the CLI's default blueprint
     ca, pa = _voxel_values(a)
     cb, pb = _voxel_values(b)
     assert ca.shape[0] > 1000
@@ -220,3 +395,46 @@ def test_stream_over_loopback_grpc(tmp_path: Path) -> None:
     assert len(back) == len(scans)
     for a, b in zip(scans, back, strict=True):
         assert np.array_equal(a.points, b.points)
+
+
+@pytest.mark.parametrize("option", ["--rerun-serve", "--rerun-web"])
+def test_a_served_map_is_served_until_ctrl_c(tmp_path: Path, option: str) -> None:
+    """The map is done, the server stays up (the web viewer answers), Ctrl-C ends it cleanly."""
+    grpc_port, web_port = _free_port(), _free_port()
+    cmd = [sys.executable, "-m", "octolgp.cli", "run", str(INTEL20), "--out", "m.octolgp"]
+    cmd += ["--limit", "3", "--learn-scans", "2", "--quiet", "--resolution", "0.2", option]
+    cmd += ["--rerun-port", str(grpc_port), "--rerun-web-port", str(web_port)]
+    proc = subprocess.Popen(
+        cmd,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=tmp_path,
+        start_new_session=True,
+        preexec_fn=_default_signals,
+    )
+    lines: list[str] = []
+    try:
+        assert proc.stdout is not None
+        for line in proc.stdout:  # one iteration per line, until the map is done
+            lines.append(line)
+            if "Ctrl-C to stop" in line:
+                break
+        assert (tmp_path / "m.octolgp").exists()
+        assert proc.poll() is None  # still serving
+        if option == "--rerun-web":
+            url = next(ln for ln in lines if "web viewer at" in ln).split()[5]
+            assert url.startswith(f"http://127.0.0.1:{web_port}/?url=rerun%2Bhttp")
+            with urllib.request.urlopen(url.split("?")[0], timeout=30) as page:
+                assert page.status == 200
+        else:
+            assert any(f"127.0.0.1:{grpc_port}" in ln for ln in lines)
+        os.killpg(proc.pid, signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    assert proc.returncode == 0, "".join(lines) + out
+    assert "stopped serving" in out
+    assert "Traceback" not in out

@@ -1,42 +1,79 @@
-"""Benchmark: the cost of streaming an online map to Rerun (issue #4).
+"""Benchmark: the cost of streaming an online map to Rerun, before and after (issues #4, #17).
 
-Maps the first ``--scans`` scans of the bundled Intel log twice in one process,
-alternating the order over ``--repeats`` rounds: once with logging off (the null
-sink) and once streaming to a recording file (``RerunSink``: every scan's pose and
-points, every refitted leaf, the per-scan metrics). Prints the ratio of the wall
-times (target ≤ 1.25) and the recording size per scan.
+Maps the first ``--scans`` scans of the bundled Intel log in one process, rotating the
+order over ``--repeats`` rounds: with logging off (the null sink), streaming to a recording
+file with the Rerun sink of git revision ``--before`` (loaded from ``git show``, opened as
+that revision's CLI opened it), and with the current sink (opened as ``octolgp run
+--rerun-save`` opens it: :func:`octolgp.sinks.rerun.open_recording` with the default
+blueprint). Prints one table: median seconds, the ratio to the run without logging
+(target ≤ 1.1) and the recording size per scan (target ≤ 30 kB over the whole log).
 
-    .venv/bin/python tools/bench_rerun.py --scans 300 --repeats 2
+    .venv/bin/python tools/bench_rerun.py --scans 910 --repeats 1
+    .venv/bin/python tools/bench_rerun.py --scans 300 --repeats 2 --before none
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.util
+import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
+from typing import Any
 
 import numpy as np
-import rerun as rr
 
 from octolgp import MapConfig, OnlineConfig, OnlineMap, learn_hyperparameters, load_scans
 from octolgp.scan import Scan
-from octolgp.sinks.rerun import RerunSink
+from octolgp.sinks import rerun as current
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"
+BEFORE = "4f61f61"  # the revision before the tiled view (issue #17)
+
+Opener = Callable[[Path, int], tuple[Any, Any]]  # (rrd, dim) -> (recording, sink)
 
 
-def run_once(scans: list[Scan], config: MapConfig, rrd: Path | None, rays: int) -> float:
+def sink_at(revision: str) -> ModuleType:
+    """``octolgp/sinks/rerun.py`` as it was at a git revision, as a module of its own."""
+    source = subprocess.run(
+        ["git", "show", f"{revision}:octolgp/sinks/rerun.py"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    spec = importlib.util.spec_from_loader(f"octolgp_rerun_{revision}", loader=None)
+    assert spec is not None
+    module = importlib.util.module_from_spec(spec)
+    exec(compile(source, f"{revision}:octolgp/sinks/rerun.py", "exec"), module.__dict__)
+    return module
+
+
+def opener(module: ModuleType, rays: int) -> Opener:
+    """How ``octolgp run --rerun-save`` of that module's revision opens a recording."""
+
+    def open_(rrd: Path, dim: int) -> tuple[Any, Any]:
+        if "blueprint" in module.open_recording.__code__.co_varnames:
+            bp = module.default_blueprint(dim)
+            rec, _ = module.open_recording("octolgp-bench", save=rrd, blueprint=bp)
+            return rec, module.RerunSink(rec, rays=rays, blueprint=False)
+        rec, _ = module.open_recording("octolgp-bench", save=rrd)
+        return rec, module.RerunSink(rec, rays=rays)
+
+    return open_
+
+
+def run_once(scans: list[Scan], config: MapConfig, rrd: Path | None, how: Opener | None) -> float:
     """Seconds to insert all scans (and flush the recording when there is one)."""
-    rec = None
-    sink = None
-    if rrd is not None:
-        rec = rr.RecordingStream("octolgp-bench")
-        rec.save(rrd)
-        sink = RerunSink(rec, rays=rays)
+    rec = sink = None
+    if rrd is not None and how is not None:
+        rec, sink = how(rrd, config.dim)
     t0 = time.perf_counter()
     with OnlineMap(config, sink=sink) as m:
         for s in scans:  # one iteration per scan
@@ -48,39 +85,49 @@ def run_once(scans: list[Scan], config: MapConfig, rrd: Path | None, rays: int) 
 
 
 def main() -> int:
-    """Run the off/on rounds and print the table."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    """Run the rounds and print the table."""
+    parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--scans", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--rays", type=int, default=0, help="also log every k-th beam")
+    parser.add_argument(
+        "--before", default=BEFORE, help=f"git revision to compare with (default {BEFORE}; none)"
+    )
     args = parser.parse_args()
     scans = list(load_scans(INTEL))[: args.scans]
     config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(n_jobs=args.jobs))
     hp = learn_hyperparameters(scans[:10], config)
     config = dataclasses.replace(config, hyperparameters=hp)
-    off, on, sizes = [], [], []
+    runs: dict[str, Opener | None] = {"off (null sink)": None}
+    if args.before != "none":
+        runs[f"Rerun sink at {args.before}"] = opener(sink_at(args.before), args.rays)
+    runs["Rerun sink now"] = opener(current, args.rays)
+    seconds: dict[str, list[float]] = {name: [] for name in runs}
+    sizes: dict[str, list[int]] = {name: [] for name in runs}
+    names = list(runs)
+    run_once(scans[:20], config, None, None)  # warm-up: thread pool, BLAS, imports
     with tempfile.TemporaryDirectory() as tmp:
-        for r in range(args.repeats):  # alternate the order against drift
-            rrd = Path(tmp) / f"run{r}.rrd"
-            if r % 2 == 0:
-                off.append(run_once(scans, config, None, args.rays))
-                on.append(run_once(scans, config, rrd, args.rays))
-            else:
-                on.append(run_once(scans, config, rrd, args.rays))
-                off.append(run_once(scans, config, None, args.rays))
-            sizes.append(rrd.stat().st_size)
-    t_off, t_on = float(np.median(off)), float(np.median(on))
-    size = float(np.median(sizes))
-    print(
-        f"Intel lab, first {len(scans)} scans, 0.1 m, {args.jobs} threads, rays every {args.rays}"
-    )
-    print("| logging | median s | per scan ms |")
-    print("|---|---|---|")
-    print(f"| off (null sink) | {t_off:.2f} | {1e3 * t_off / len(scans):.1f} |")
-    print(f"| Rerun file sink | {t_on:.2f} | {1e3 * t_on / len(scans):.1f} |")
-    print(f"ratio on/off: {t_on / t_off:.3f} (target ≤ 1.25); runs off {off}, on {on}")
-    print(f"recording: {size / 1e6:.1f} MB, {size / len(scans) / 1e3:.1f} kB per scan")
+        for r in range(args.repeats):  # rotate the order against drift
+            for i in range(len(names)):
+                name = names[(i + r) % len(names)]
+                rrd = Path(tmp) / f"run{r}_{i}.rrd"
+                how = runs[name]
+                seconds[name].append(run_once(scans, config, rrd, how))
+                sizes[name].append(rrd.stat().st_size if how is not None else 0)
+                rrd.unlink(missing_ok=True)
+    n = len(scans)
+    t_off = float(np.median(seconds[names[0]]))
+    print(f"Intel lab, first {n} scans, 0.1 m, {args.jobs} threads, rays every {args.rays}")
+    print("| logging | median s | per scan ms | ratio to off | recording MB | kB per scan |")
+    print("|---|---|---|---|---|---|")
+    for name in names:
+        t = float(np.median(seconds[name]))
+        size = float(np.median(sizes[name]))
+        rec = "" if runs[name] is None else f"{size / 1e6:.1f}"
+        per = "" if runs[name] is None else f"{size / n / 1e3:.1f}"
+        print(f"| {name} | {t:.2f} | {1e3 * t / n:.1f} | {t / t_off:.3f} | {rec} | {per} |")
+    print("runs (s): " + "; ".join(f"{k}: {[round(v, 2) for v in s]}" for k, s in seconds.items()))
     return 0
 
 

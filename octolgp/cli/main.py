@@ -115,7 +115,18 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
     rr = p.add_mutually_exclusive_group()
     rr.add_argument("--rerun-save", metavar="REC.rrd", help="stream the mapping to a recording")
     rr.add_argument("--rerun-connect", metavar="URL", help="stream to a viewer (rerun+http://...)")
-    rr.add_argument("--rerun-serve", action="store_true", help="serve the stream over gRPC")
+    rr.add_argument(
+        "--rerun-serve", action="store_true", help="serve the stream over gRPC until Ctrl-C"
+    )
+    rr.add_argument(
+        "--rerun-web",
+        action="store_true",
+        help="serve the stream and rerun's web viewer (open the printed URL) until Ctrl-C",
+    )
+    p.add_argument("--rerun-port", type=_positive_int, default=None, help="gRPC port (9876)")
+    p.add_argument(
+        "--rerun-web-port", type=_positive_int, default=None, help="web viewer port (9090)"
+    )
     p.add_argument(
         "--rerun-rays", type=_nonnegative_int, default=0, help="log every k-th beam as a ray"
     )

@@ -3,8 +3,9 @@
 Both insert scans one at a time into a new (or resumed) map file, configured by
 :func:`octolgp.cli.configs.resolve_config` (``--config`` and the flags; the resolved config is
 written beside the map as ``MAP.octolgp.toml``), optionally streaming the mapping to Rerun
-(``--rerun-save/--rerun-connect/--rerun-serve``, opened by
-:func:`octolgp.sinks.rerun.open_recording`). Heavy modules are imported inside the commands.
+(``--rerun-save/--rerun-connect/--rerun-serve/--rerun-web``, opened by
+:func:`octolgp.sinks.rerun.open_recording` with the default blueprint; a served map is served
+until Ctrl-C). Heavy modules are imported inside the commands.
 """
 
 from __future__ import annotations
@@ -20,27 +21,41 @@ from octolgp.errors import OctolgpError
 __all__ = ["cmd_replay", "cmd_run"]
 
 
-def _recording(args: argparse.Namespace) -> Any:
-    """The Rerun recording the options ask for, or ``None`` (rerun is imported only then)."""
-    if not (args.rerun_save or args.rerun_connect or args.rerun_serve):
-        return None
-    from octolgp.sinks.rerun import open_recording
+def _recording(args: argparse.Namespace, dim: int) -> tuple[Any, str | None]:
+    """The Rerun recording the options ask for and the URL it is served at, or ``None``s.
 
+    rerun is imported only when a ``--rerun-*`` target is given.
+    """
+    web = getattr(args, "rerun_web", False)
+    if not (args.rerun_save or args.rerun_connect or args.rerun_serve or web):
+        return None, None
+    from octolgp.sinks.rerun import default_blueprint, open_recording
+
+    bp = default_blueprint(dim, uncertainty=args.rerun_uncertainty)
+    ports: dict[str, Any] = {
+        "grpc_port": getattr(args, "rerun_port", None),
+        "web_port": getattr(args, "rerun_web_port", None),
+    }
     try:
         if args.rerun_save:
             where = "--rerun-save"
-            rec, url = open_recording("octolgp", save=args.rerun_save)
+            rec, url = open_recording("octolgp", save=args.rerun_save, blueprint=bp)
         elif args.rerun_connect:
             where = "--rerun-connect"
-            rec, url = open_recording("octolgp", connect=args.rerun_connect)
+            rec, url = open_recording("octolgp", connect=args.rerun_connect, blueprint=bp)
+        elif web:
+            where = "--rerun-web"
+            rec, url = open_recording("octolgp", web=True, blueprint=bp, **ports)
         else:
             where = "--rerun-serve"
-            rec, url = open_recording("octolgp", serve=True)
+            rec, url = open_recording("octolgp", serve=True, blueprint=bp, **ports)
     except OctolgpError as exc:
         raise OctolgpError(f"{where}: {exc}") from None
-    if url is not None:
-        print(f"serving the recording at {url} (open it with: rerun --connect {url})")
-    return rec
+    if web:
+        print(f"serving rerun's web viewer at {url} (open it in a browser)", flush=True)
+    elif url is not None:
+        print(f"serving the recording at {url} (open it with: rerun --connect {url})", flush=True)
+    return rec, url
 
 
 def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> int:
@@ -65,12 +80,14 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
     config_file = config_path(out)
     if not resume:
         write_config(config, config_file, args.config)
-    rec = _recording(args)
+    rec, url = _recording(args, config.dim)
     sink = None
     if rec is not None:
         from octolgp.sinks.rerun import RerunSink
 
-        sink = RerunSink(rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty)
+        sink = RerunSink(
+            rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty, blueprint=False
+        )
     if resume:
         m = OnlineMap.open(out)
         if m.config.dim != config.dim or m.config.resolution != config.resolution:
@@ -104,16 +121,24 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
             last = m.flush()
             repaired += 0 if last is None else last.repaired
             n_leaves, n_scans = len(m.store), m.n_scans
-    finally:
+    except BaseException:
         if rec is not None:
             rec.flush()
             rec.disconnect()
+        raise
     print(f"wrote {out}: {n_scans} scans, {n_leaves} leaves, hyperparameters {m.hyperparameters}")
     print(f"wrote {config_file}: the resolved config")
     if repaired:
         print(
             f"note: {repaired} leaf kernel matrices were not positive definite; repaired by jitter"
         )
+    if rec is not None:
+        rec.flush()
+        if url is not None:  # --rerun-serve/--rerun-web: viewers can still look at the map
+            from octolgp.sinks.rerun import serve_until_interrupted
+
+            serve_until_interrupted(url)
+        rec.disconnect()
     return 0
 
 
