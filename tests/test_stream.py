@@ -24,6 +24,7 @@ from rerun.chunk import RrdReader
 
 from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan, load_scans
 from octolgp.cli import main
+from octolgp.errors import OctolgpError
 from octolgp.io.rrd_read import read_rrd
 from octolgp.mapping.online import ScanUpdate
 from octolgp.sinks.base import MapChange
@@ -261,6 +262,15 @@ def test_the_blueprint_is_a_default_blueprint(tmp_path: Path, how: str) -> None:
     rec.disconnect()
     assert _activations(rrd) == [(False, True)]
     assert len(RrdReader(rrd).blueprints()) == 1
+
+
+def test_blueprints_for_each_dimension() -> None:
+    for dim in (2, 3):
+        for uncertainty in (False, True):
+            assert default_blueprint(dim, uncertainty=uncertainty) is not None
+    assert default_blueprint(2, bounds=((-5.0, 5.0), (0.0, 3.0))) is not None
+    with pytest.raises(OctolgpError, match="grey_steps"):
+        RerunSink(rr.RecordingStream("octolgp-test"), grey_steps=0)
 
 
 def test_streaming_does_not_change_the_map(tmp_path: Path) -> None:

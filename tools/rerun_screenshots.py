@@ -23,6 +23,9 @@ import tempfile
 import time
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 from octolgp import MapConfig, OnlineConfig, OnlineMap, Scan, load_scans
 from octolgp.sinks.rerun import RerunSink, default_blueprint, open_recording
@@ -31,9 +34,9 @@ ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"
 
 
-def record(scans: Iterable[Scan], config: MapConfig, rrd: Path) -> int:
+def record(scans: Iterable[Scan], config: MapConfig, rrd: Path, blueprint: Any) -> int:
     """Map the scans with a Rerun recording as ``octolgp run --rerun-save``; the scan count."""
-    rec, _ = open_recording("octolgp", save=rrd, blueprint=default_blueprint(config.dim))
+    rec, _ = open_recording("octolgp", save=rrd, blueprint=blueprint)
     n = 0
     with OnlineMap(config, sink=RerunSink(rec, blueprint=False)) as m:
         for scan in scans:  # one iteration per scan
@@ -45,13 +48,26 @@ def record(scans: Iterable[Scan], config: MapConfig, rrd: Path) -> int:
     return n
 
 
+def hit_bounds(scans: Iterable[Scan]) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The ranges of x and y holding 99 % of the hits (beams short of max range), + 5 %."""
+    hits = []
+    for scan in scans:  # one iteration per scan
+        rng = np.linalg.norm(scan.points - scan.origin, axis=1)
+        far = np.inf if scan.max_range is None else 0.99 * scan.max_range
+        hits.append(scan.points[rng < far][::10, :2])
+    lo, hi = np.percentile(np.concatenate(hits), [0.5, 99.5], axis=0)
+    margin = 0.05 * float(np.max(hi - lo))
+    return (lo[0] - margin, hi[0] + margin), (lo[1] - margin, hi[1] + margin)
+
+
 def intel(rrd: Path, n_scans: int | None) -> int:
-    """The Intel log (2D, 0.1 m, the CLI's defaults)."""
-    scans = load_scans(INTEL)
-    if n_scans is not None:
-        scans = (s for i, s in enumerate(scans) if i < n_scans)
+    """The Intel log (2D, 0.1 m).
+
+    The view is zoomed on the building, as a user would zoom: free beams reach 80 m out.
+    """
+    scans = list(load_scans(INTEL))[:n_scans]
     config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(n_jobs=2))
-    return record(scans, config, rrd)
+    return record(scans, config, rrd, default_blueprint(2, bounds=hit_bounds(scans)))
 
 
 def street(rrd: Path, n_scans: int) -> int:
@@ -60,7 +76,7 @@ def street(rrd: Path, n_scans: int) -> int:
 
     sim = simulate_mission3d(float(n_scans), n_azimuth=360, n_elevation=16)
     config = MapConfig(dim=3, resolution=0.2, online=OnlineConfig(n_jobs=2))
-    return record((s.downsample(0.2) for s in sim.scans()), config, rrd)
+    return record((s.downsample(0.2) for s in sim.scans()), config, rrd, default_blueprint(3))
 
 
 def _free_port() -> int:

@@ -10,7 +10,8 @@ carry stamps):
     so a replay that names no entity still finds these.
 ``map/tiles/<tx>_<ty>`` (2D maps)
     The map as grey occupancy images of :data:`TILE` × :data:`TILE` cells (PNG, one byte a
-    cell, ``255 (1 − P)``: free light, occupied dark, unknown 128), placed by a static
+    cell, ``255 (1 − P)`` on :data:`GREY_STEPS` + 1 levels: free light, occupied dark,
+    unknown 128), placed by a static
     ``Transform3D`` in the top-down ``map`` space (``x`` right, ``y`` up: the space stores
     ``(x, −y)`` because a 2D view's ``y`` points down). A tile is re-logged, in place, only
     in the scans that changed one of its grey levels.
@@ -20,8 +21,9 @@ carry stamps):
     optional decimated beams, in the same space.
 ``world/map/voxels/<rx>_<ry>_<rz>`` (3D maps)
     The occupied voxels (P > 0.5) of a region of :data:`REGION` voxels per edge as one
-    ``Boxes3D``, coloured by height; re-logged only in the scans that refit a leaf in it. A
-    pruned occupied leaf is one box. ``world/path/<block>`` and ``world/sensor/rays``
+    ``Boxes3D``, coloured by height (the ramp spans the first scan's heights); re-logged
+    only in the scans that moved a voxel in it across P = 0.5. A pruned occupied leaf is
+    one box. ``world/path/<block>`` and ``world/sensor/rays``
     (optional) as above.
 ``map/variance/<tile>``, ``world/map/variance/<region>``
     Optional uncertainty layer: latent variance / σf² per voxel (white: as uncertain as
@@ -33,6 +35,8 @@ carry stamps):
 The default blueprint (:func:`default_blueprint`) is sent as rerun's *default* blueprint
 (``default_blueprint=`` of ``save``/``connect_grpc``/``serve_grpc``, or
 ``send_blueprint(make_active=False)``), so a layout the user made in the viewer is kept.
+:func:`open_recording` batches a second of rows per chunk (:data:`FLUSH_SECONDS`), which
+makes a long recording much smaller than rerun's default of 0.2 s.
 
 rerun-sdk is imported here and in the ``octolgp.io.rrd*`` modules only.
 """
@@ -216,15 +220,20 @@ def serve_until_interrupted(url: str, *, poll: float = 0.5) -> None:
     """
     import time
 
-    print(f"the map is done; still serving at {url} (Ctrl-C to stop)", flush=True)
     try:
+        print(f"the map is done; still serving at {url} (Ctrl-C to stop)", flush=True)
         while True:
             time.sleep(poll)
     except KeyboardInterrupt:
         print("stopped serving", flush=True)
 
 
-def default_blueprint(dim: int, *, uncertainty: bool = False) -> Any:
+def default_blueprint(
+    dim: int,
+    *,
+    uncertainty: bool = False,
+    bounds: tuple[tuple[float, float], tuple[float, float]] | None = None,
+) -> Any:
     """The map view (2D: top-down image; 3D: voxels) beside the per-scan plots.
 
     Parameters
@@ -233,6 +242,8 @@ def default_blueprint(dim: int, *, uncertainty: bool = False) -> Any:
         2 or 3: the map's dimension.
     uncertainty : bool
         Add a view of the variance layer.
+    bounds : ((x0, x1), (y0, y1)), optional
+        What a 2D view shows first, metres, world frame (default: everything logged).
 
     Returns
     -------
@@ -240,9 +251,16 @@ def default_blueprint(dim: int, *, uncertainty: bool = False) -> Any:
     """
     views: list[Any]
     if dim == 2:
+        shown = None
+        if bounds is not None:  # the view's y is the world's −y
+            (x0, x1), (y0, y1) = bounds
+            shown = rrb.VisualBounds2D(x_range=[x0, x1], y_range=[-y1, -y0])
         views = [
             rrb.Spatial2DView(
-                origin="/map", contents=["$origin/**", "- /map/variance/**"], name="map (top-down)"
+                origin="/map",
+                contents=["$origin/**", "- /map/variance/**"],
+                name="map (top-down)",
+                visual_bounds=shown,
             )
         ]
         if uncertainty:
@@ -251,6 +269,7 @@ def default_blueprint(dim: int, *, uncertainty: bool = False) -> Any:
                     origin="/map",
                     contents=["/map/variance/**", "/map/robot", "/map/path/**"],
                     name="uncertainty",
+                    visual_bounds=shown,
                 )
             )
     else:
