@@ -1,79 +1,86 @@
-"""Map the bundled Intel lab log (real 2D laser data) with overlapping local GPs.
+"""Map the bundled Intel lab log (real 2D laser data) online, scan by scan, as ``octolgp run`` does.
 
-Run by ``make demo``. Learns the hyperparameters on a subset, builds the batch
-OM_LGP map at 0.1 m and writes ``<out>/intel_lab.png`` (the occupancy probability
-on a grid) and the learnt hyperparameters.
+Run by ``make demo``. The mapping is ``octolgp run`` itself (``OnlineMap`` with the default
+``MapConfig(dim=2, resolution=0.1)``, a progress bar in scans/s, the run streamed to a Rerun
+recording); then the map is exported. Writes into ``--out``:
 
-    python examples/intel_lab.py --out demo [--every 2]
+- ``intel_lab.octolgp``: the map file, with its config ``intel_lab.octolgp.toml``;
+- ``intel_lab.rrd``: the Rerun recording of the run (``rerun intel_lab.rrd``);
+- ``intel_lab.png``: the floor plan over the hits' bounding box, one pixel per cell
+  (free light, occupied dark, grey where the map has no information), north up;
+- ``intel_lab.bt``: the map as an OctoMap binary tree;
+- ``intel_lab.pgm`` and ``intel_lab.yaml``: the map for nav2's ``map_server``.
+
+    python examples/intel_lab.py --out demo [--limit 100] [--no-rerun]
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from octolgp import MapConfig, build_map, learn_hyperparameters, load_scans
+from octolgp.cli import main as octolgp_cli
+from octolgp.export.image import floor_plan, write_floor_plan
+from octolgp.export.nav2 import write_nav2_map
+from octolgp.mapping.online import OnlineMap
 
 LOG = Path(__file__).resolve().parent.parent / "data" / "intel_lab" / "intel-corrected.log.gz"
+MARGIN = 1.0  # metres of floor plan around the hits
 
 
-def main() -> None:
+def hits_box(m: OnlineMap, margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """Centres of the lower-left and upper-right cells around every hit of the map's scans."""
+    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+    for scan in m.scans():  # one iteration per journaled scan
+        r = np.linalg.norm(scan.points - scan.origin, axis=1)
+        hits = scan.points[r < (scan.max_range or np.inf)]
+        if len(hits):
+            lo, hi = np.minimum(lo, hits.min(axis=0)), np.maximum(hi, hits.max(axis=0))
+    res = m.config.resolution
+    return (np.floor((lo - margin) / res) + 0.5) * res, (np.floor((hi + margin) / res) + 0.5) * res
+
+
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="demo", help="output folder")
     parser.add_argument("--log", default=str(LOG), help="CARMEN log")
-    parser.add_argument("--every", type=int, default=1, help="use every k-th scan")
-    parser.add_argument("--resolution", type=float, default=0.1)
-    args = parser.parse_args()
+    parser.add_argument("--limit", type=int, default=None, help="stop after N scans")
+    parser.add_argument("--no-rerun", action="store_true", help="no Rerun recording")
+    args = parser.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    path = {ext: out / f"intel_lab.{ext}" for ext in ("octolgp", "rrd", "png", "bt", "pgm")}
 
-    scans = list(load_scans(args.log))[:: args.every]
-    print(f"{args.log}: {len(scans)} scans, {sum(len(s) for s in scans)} beams")
-    config = MapConfig(dim=2, resolution=args.resolution)
+    # Map the log online, scan by scan: the same code path as `octolgp run`.
+    run = ["run", args.log, "--out", str(path["octolgp"]), "--overwrite"]
+    run += [] if args.limit is None else ["--limit", str(args.limit)]
+    run += [] if args.no_rerun else ["--rerun-save", str(path["rrd"])]
+    if args.no_rerun:
+        path.pop("rrd").unlink(missing_ok=True)  # no stale recording beside the new map
     t0 = time.perf_counter()
-    hp = learn_hyperparameters(scans, config)
-    print(f"learnt in {time.perf_counter() - t0:.1f} s: {hp}")
-    config = dataclasses.replace(config, hyperparameters=hp)
-    t0 = time.perf_counter()
-    gmap = build_map(scans, config, method="lgp", n_jobs=2)
-    print(f"built {len(gmap.clusters)} local GPs in {time.perf_counter() - t0:.1f} s")
+    status = octolgp_cli(run)
+    if status:
+        return status
+    seconds = time.perf_counter() - t0
 
-    # Occupancy on a 0.1 m grid over the building (endpoints' 1st-99th percentiles).
-    pts = np.concatenate(
-        [
-            s.points[np.linalg.norm(s.points - s.origin, axis=1) < (s.max_range or np.inf)]
-            for s in scans
-        ]
-    )
-    lo, hi = np.percentile(pts, 1, axis=0) - 1.0, np.percentile(pts, 99, axis=0) + 1.0
-    xs = np.arange(lo[0], hi[0], args.resolution)
-    ys = np.arange(lo[1], hi[1], args.resolution)
-    grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
-    t0 = time.perf_counter()
-    prob = gmap.occupancy(grid).reshape(ys.size, xs.size)
-    print(f"predicted {grid.shape[0]} points in {time.perf_counter() - t0:.1f} s")
+    # Export: floor plan, OctoMap, nav2.
+    with OnlineMap.open(path["octolgp"]) as m:
+        n_scans, res = m.n_scans, m.config.resolution
+        image = floor_plan(m.occupancy, *hits_box(m, MARGIN), res)
+        write_floor_plan(path["png"], image)
+        m.export_octomap(path["bt"])
+        yaml = write_nav2_map(path["pgm"], *m.voxels(), res)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(8, 8))
-    ax.imshow(
-        prob, origin="lower", cmap="gray_r", vmin=0, vmax=1, extent=(lo[0], hi[0], lo[1], hi[1])
-    )
-    ax.set_title("Intel lab, OM_LGP P(occupied)")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    fig.tight_layout()
-    fig.savefig(out / "intel_lab.png", dpi=110)
-    (out / "hyperparameters.txt").write_text(f"{hp}\n")
-    print(f"wrote {out / 'intel_lab.png'}")
+    print(f"mapped {n_scans} scans in {seconds:.1f} s ({n_scans / seconds:.2f} scans/s)")
+    print(f"floor plan: {image.shape[1]} x {image.shape[0]} cells of {res:g} m")
+    for file in [*path.values(), yaml]:
+        print(f"  {file} ({file.stat().st_size / 1e6:.1f} MB)")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())
