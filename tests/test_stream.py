@@ -170,7 +170,7 @@ def test_2d_tiles_show_a_correction(tmp_path: Path) -> None:
     rrd = tmp_path / "m.rrd"
     rec = rr.RecordingStream("octolgp-test")
     rec.save(rrd)
-    far = Scan(origin=[30.0, 30.0], points=[[31.0, 30.0], [30.0, 31.5]])
+    far = Scan(origin=np.array([30.0, 30.0]), points=np.array([[31.0, 30.0], [30.0, 31.5]]))
     shift = np.array([[1.0, 0.0, -30.0], [0.0, 1.0, -30.0], [0.0, 0.0, 1.0]])
     config = MapConfig(dim=2, resolution=0.2, hyperparameters=HP)
     with OnlineMap(config, path=tmp_path / "m.octolgp", sink=RerunSink(rec, tile=32)) as m:
