@@ -6,7 +6,7 @@ recording); then the map is exported. Writes into ``--out``:
 
 - ``intel_lab.octolgp``: the map file, with its config ``intel_lab.octolgp.toml``;
 - ``intel_lab.rrd``: the Rerun recording of the run (``rerun intel_lab.rrd``);
-- ``intel_lab.png``: the floor plan over the hits' bounding box, one pixel per cell
+- ``intel_lab.png``: the floor plan of the building (the hits' box), one pixel per cell
   (free light, occupied dark, grey where the map has no information), north up;
 - ``intel_lab.bt``: the map as an OctoMap binary tree;
 - ``intel_lab.pgm`` and ``intel_lab.yaml``: the map for nav2's ``map_server``.
@@ -30,18 +30,22 @@ from octolgp.mapping.online import OnlineMap
 
 LOG = Path(__file__).resolve().parent.parent / "data" / "intel_lab" / "intel-corrected.log.gz"
 MARGIN = 1.0  # metres of floor plan around the hits
+KEEP = 0.1  # percent of hits at each end of x and y left outside the floor plan (stray returns)
 
 
-def hits_box(m: OnlineMap, margin: float) -> tuple[np.ndarray, np.ndarray]:
-    """Centres of the lower-left and upper-right cells around every hit of the map's scans."""
-    lo, hi = np.full(2, np.inf), np.full(2, -np.inf)
+def hits_box(m: OnlineMap) -> tuple[np.ndarray, np.ndarray]:
+    """Centres of the lower-left and upper-right cells of the floor plan: the building.
+
+    The box holds the hits of the map's scans but the ``KEEP`` % at each end of each axis
+    (returns through windows and doors), grown by ``MARGIN``.
+    """
+    hits = []
     for scan in m.scans():  # one iteration per journaled scan
         r = np.linalg.norm(scan.points - scan.origin, axis=1)
-        hits = scan.points[r < (scan.max_range or np.inf)]
-        if len(hits):
-            lo, hi = np.minimum(lo, hits.min(axis=0)), np.maximum(hi, hits.max(axis=0))
+        hits.append(scan.points[r < (scan.max_range or np.inf)])
+    lo, hi = np.percentile(np.concatenate(hits), [KEEP, 100 - KEEP], axis=0)
     res = m.config.resolution
-    return (np.floor((lo - margin) / res) + 0.5) * res, (np.floor((hi + margin) / res) + 0.5) * res
+    return (np.floor((lo - MARGIN) / res) + 0.5) * res, (np.floor((hi + MARGIN) / res) + 0.5) * res
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
     # Export: floor plan, OctoMap, nav2.
     with OnlineMap.open(path["octolgp"]) as m:
         n_scans, res = m.n_scans, m.config.resolution
-        image = floor_plan(m.occupancy, *hits_box(m, MARGIN), res)
+        image = floor_plan(m.occupancy, *hits_box(m), res)
         write_floor_plan(path["png"], image)
         m.export_octomap(path["bt"])
         yaml = write_nav2_map(path["pgm"], *m.voxels(), res)

@@ -24,7 +24,8 @@ SCANS = 10  # the first scans of the log: about 15 s on one core
 
 def _example() -> ModuleType:
     spec = importlib.util.spec_from_file_location("intel_lab_example", EXAMPLE)
-    assert spec is not None and spec.loader is not None
+    assert spec is not None
+    assert spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -43,7 +44,7 @@ def test_demo_writes_every_file(tmp_path: Path, capsys: pytest.CaptureFixture[st
         assert m.n_scans == SCANS
         res = m.config.resolution
         assert (m.config.dim, res) == (2, 0.1)
-        low, high = example.hits_box(m, example.MARGIN)
+        low, high = example.hits_box(m)
         # The floor plan: one pixel per cell of the box, north up, exactly the map's P.
         with Image.open(tmp_path / f"{stem}.png") as png:
             assert png.mode == "L"
@@ -55,17 +56,21 @@ def test_demo_writes_every_file(tmp_path: Path, capsys: pytest.CaptureFixture[st
         p = m.occupancy(centres)
         want = np.where(p == 0.5, UNKNOWN_GREY, np.rint(255 * (1 - p)))
         np.testing.assert_array_equal(image[rows, cols], want)
-        assert image.min() < 40 and image.max() > 215 and (image == UNKNOWN_GREY).any()
+        assert image.min() < 40
+        assert image.max() > 215
+        assert (image == UNKNOWN_GREY).any()
 
         voxels, prob = m.voxels()
         # OctoMap: the header and every node decode with octolgp's reference reader.
         header = read_bt_header(tmp_path / f"{stem}.bt")
         assert (header["kind"], header["res"]) == ("bt", res)
         _, occupied, _ = decode_bt(tmp_path / f"{stem}.bt")
-        assert occupied.any() and not occupied.all()
+        assert occupied.any()
+        assert not occupied.all()
         # nav2: both files read back as map_server does, cell states as the map's.
         nav = read_nav2_map(tmp_path / f"{stem}.yaml")
-        assert nav.resolution == res and nav.mode == "trinary"
+        assert nav.resolution == res
+        assert nav.mode == "trinary"
         pick = np.linspace(0, len(prob) - 1, 500).astype(int)
         np.testing.assert_array_equal(nav.states_at(voxels[pick]), cell_states(prob[pick]))
 
@@ -86,8 +91,10 @@ def test_floor_plan_is_north_up_with_grey_unknown(tmp_path: Path) -> None:
         return occupancy(points)
 
     image = floor_plan(counted, [-0.95, 0.05], [0.95, 1.95], 0.1, chunk=40)
-    assert image.shape == (20, 20) and image.dtype == np.uint8
-    assert max(calls) <= 40 and sum(calls) == 400  # whole rows per chunk
+    assert image.shape == (20, 20)
+    assert image.dtype == np.uint8
+    assert max(calls) <= 40
+    assert sum(calls) == 400
     assert (image[:, :10] == UNKNOWN_GREY).all()
     assert (image[:10, 10:] == np.rint(255 * (1 - 0.9))).all()  # north (top rows): dark
     assert (image[10:, 10:] == np.rint(255 * (1 - 0.1))).all()  # south: free, light
