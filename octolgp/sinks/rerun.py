@@ -45,7 +45,8 @@ rerun-sdk is imported here and in the ``octolgp.io.rrd*`` modules only.
 from __future__ import annotations
 
 import hashlib
-import io
+import struct
+import zlib
 from dataclasses import dataclass, field
 from datetime import timedelta
 from pathlib import Path
@@ -115,12 +116,26 @@ def _ramp(value: NDArray[Any]) -> NDArray[np.uint8]:
 
 
 def _png(grey: NDArray[np.uint8]) -> bytes:
-    """A grey image as PNG bytes (Pillow, a dependency of Matplotlib)."""
-    from PIL import Image
+    """A grey image as PNG bytes: 8-bit greyscale, no row filter, zlib level 6.
 
-    buf = io.BytesIO()
-    Image.fromarray(grey).save(buf, format="PNG", compress_level=6)
-    return buf.getvalue()
+    With few grey levels, unfiltered rows compress as well as filtered ones and twice as
+    fast as Pillow's adaptive filtering (PNG spec, sections 11.2 and 12.8).
+    """
+    height, width = grey.shape
+    raw = np.zeros((height, width + 1), np.uint8)  # each row: filter type 0, then pixels
+    raw[:, 1:] = grey
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        crc = zlib.crc32(tag + data)
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", crc)
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)  # 8 bits, greyscale
+    return (
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6))
+        + chunk(b"IEND", b"")
+    )
 
 
 def _flip_y(xy: FloatArray) -> NDArray[np.float32]:
@@ -320,20 +335,25 @@ class _Tiles:
     dirty: set[tuple[int, int]] = field(default_factory=set)
     placed: set[tuple[int, int]] = field(default_factory=set)  # static transform logged
 
-    def paint(self, key: int, cell: NDArray[np.int64], side: int, grey: NDArray[np.uint8]) -> None:
-        """Write one leaf's grey levels (``side**2`` in flat order, x fastest, or 1)."""
-        t = (int(cell[0] // self.tile), int(cell[1] // self.tile))
-        col, row = int(cell[0] - t[0] * self.tile), int(cell[1] - t[1] * self.tile)
-        image = self.grey.get(t)
-        if image is None:
-            image = self.grey[t] = np.full((self.tile, self.tile), self.fill, np.uint8)
-        block = image[row : row + side, col : col + side]
-        if grey.size == 0:  # a leaf without predictions yet: unknown
-            block[:] = self.fill
-        else:
-            block[:] = grey.reshape(-1, side) if grey.size > 1 else grey
-        self.where[key] = (t, row, col, side)
-        self.dirty.add(t)
+    def paint(self, keys: list[int], cells: NDArray[np.int64], grey: NDArray[np.uint8]) -> None:
+        """Write leaves' grey levels: ``cells`` (n, 2) their lower corners, ``grey`` (n, s, s)."""
+        side = grey.shape[1]
+        tiles = cells // self.tile
+        offsets = cells - tiles * self.tile
+        steps = np.arange(side)
+        unique, inverse = np.unique(tiles, axis=0, return_inverse=True)
+        for k, (tx, ty) in enumerate(unique.tolist()):  # one iteration per tile written to
+            t = (int(tx), int(ty))
+            image = self.grey.get(t)
+            if image is None:
+                image = self.grey[t] = np.full((self.tile, self.tile), self.fill, np.uint8)
+            mine = np.flatnonzero(inverse.reshape(-1) == k)
+            rows = offsets[mine, 1, None, None] + steps[None, :, None]
+            cols = offsets[mine, 0, None, None] + steps[None, None, :]
+            image[rows, cols] = grey[mine]  # flat voxel order is x fastest: rows are y
+            self.dirty.add(t)
+            for i in mine.tolist():  # one iteration per leaf: where to erase it from
+                self.where[keys[i]] = (t, int(offsets[i, 1]), int(offsets[i, 0]), side)
 
     def erase(self, key: int) -> None:
         """A leaf left the map: its cells turn back to the fill (unknown)."""
@@ -571,13 +591,26 @@ class RerunSink:
     def _update_tiles(self, change: MapChange) -> None:
         """Paint the refitted leaves into their tiles, then log the tiles that changed."""
         occupancy, variance = self._tiles(change.side)
-        res = change.resolution
-        for leaf in change.leaves:  # one iteration per refitted leaf
-            cell = np.rint(leaf.lo / res).astype(np.int64)
-            occupancy.paint(leaf.key, cell, change.side, _grey(leaf.prob, self.grey_steps))
-            if variance is not None:
-                level = leaf.var.astype(np.float64) / change.signal_variance
-                variance.paint(leaf.key, cell, change.side, _grey(1.0 - level, self.grey_steps))
+        res, side = change.resolution, change.side
+        leaves = list(change.leaves)
+        if leaves:
+            # one row per leaf, NaN where a leaf has no prediction yet; a pruned leaf's one
+            # value is broadcast over its voxels
+            prob = np.full((len(leaves), side * side), np.nan)
+            var = np.full_like(prob, np.nan) if variance is not None else None
+            for i, leaf in enumerate(leaves):  # one iteration per refitted leaf: a copy
+                if leaf.prob.size:
+                    prob[i] = leaf.prob
+                if var is not None and leaf.var.size:
+                    var[i] = leaf.var
+            keys = [leaf.key for leaf in leaves]
+            cells = np.rint(np.array([leaf.lo for leaf in leaves]) / res).astype(np.int64)
+            occupancy.paint(keys, cells, self._grey(prob, occupancy.fill).reshape(-1, side, side))
+            if variance is not None and var is not None:
+                level = 1.0 - var / change.signal_variance
+                variance.paint(
+                    keys, cells, self._grey(level, variance.fill).reshape(-1, side, side)
+                )
         for key in change.removed:  # one iteration per leaf that left the map
             occupancy.erase(key)
             if variance is not None:
@@ -585,6 +618,13 @@ class RerunSink:
         self._log_tiles("map/tiles", occupancy, res)
         if variance is not None:
             self._log_tiles("map/variance", variance, res)
+
+    def _grey(self, prob: FloatArray, fill: int) -> NDArray[np.uint8]:
+        """Grey levels of P (:func:`_grey`), ``fill`` where P is NaN."""
+        known = ~np.isnan(prob)
+        grey = np.full(prob.shape, fill, np.uint8)
+        grey[known] = _grey(prob[known], self.grey_steps)
+        return grey
 
     def _log_tiles(self, prefix: str, tiles: _Tiles, res: float) -> None:
         for (tx, ty), grey in tiles.changed():  # one iteration per tile that changed
