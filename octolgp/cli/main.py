@@ -123,9 +123,15 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="serve the stream and rerun's web viewer (open the printed URL) until Ctrl-C",
     )
-    p.add_argument("--rerun-port", type=_positive_int, default=None, help="gRPC port (9876)")
     p.add_argument(
-        "--rerun-web-port", type=_positive_int, default=None, help="web viewer port (9090)"
+        "--rerun-port", type=_positive_int, default=None, metavar="PORT", help="gRPC port (9876)"
+    )
+    p.add_argument(
+        "--rerun-web-port",
+        type=_positive_int,
+        default=None,
+        metavar="PORT",
+        help="web viewer port (9090)",
     )
     p.add_argument(
         "--rerun-rays", type=_nonnegative_int, default=0, help="log every k-th beam as a ray"
