@@ -68,6 +68,11 @@ def test_grid_numbers_equal_the_protocol_done_by_hand(intel20: list, report) -> 
         # every GP method used the hyperparameters learnt on the first training scans
         hp = learn_hyperparameters([intel20[i] for i in train_idx][:40], config)
         assert report.hyperparameters[index] == hp
+    spread = report.hyperparameter_spread()
+    lengths = [hp.length_scale for hp in report.hyperparameters]
+    assert spread["length_scale"] == (np.mean(lengths), np.std(lengths))
+    assert set(spread) == {"length_scale", "signal_variance", "noise_variance", "alpha", "beta"}
+    assert "- length_scale: " in report.table()
 
 
 def test_online_result_matches_a_direct_online_map(intel20: list, report) -> None:

@@ -140,3 +140,53 @@ def test_neg_loo_log_prob_value() -> None:
     value, _ = _neg_loo_log_prob(np.array([2.0, 0.5]), mu, var, y)
     z = (2.0 * mu + 0.5) / np.sqrt(1.0 + 4.0 * var)
     assert value == pytest.approx(-np.log(ndtr(z)).sum(), rel=1e-14)
+
+
+# ------------------------------------------------- a point the sensor never informed
+
+
+def test_latent_occupancy_reads_half_at_the_prior_and_is_unchanged_where_informed() -> None:
+    """β acts in proportion to the informed share ``1 - var/σf²``: at the prior P = 0.5."""
+    from octolgp.config import Hyperparameters
+    from octolgp.gp.plsc import latent_occupancy
+
+    hp = Hyperparameters(0.5, 2.0, 0.05, alpha=3.0, beta=1.5)
+    prior = latent_occupancy(np.zeros(3), np.full(3, 2.0), hp)
+    np.testing.assert_array_equal(prior, 0.5)
+    # far from the data the variance can round above σf²: still the prior
+    assert latent_occupancy(np.zeros(1), np.array([2.0 + 1e-12]), hp)[0] == 0.5
+    mean, var = np.array([0.8, -0.7]), np.array([0.1, 0.5])
+    share = 1.0 - var / 2.0
+    expected = ndtr((3.0 * mean + 1.5 * share) / np.sqrt(1.0 + 9.0 * (var + 0.05)))
+    np.testing.assert_allclose(latent_occupancy(mean, var, hp), expected, rtol=1e-14)
+    # exactly informed (zero variance): plain PLSC
+    np.testing.assert_allclose(
+        latent_occupancy(mean, np.zeros(2), hp), occupancy_probability(mean, 0.05, 3.0, 1.5)
+    )
+
+
+def test_online_map_far_from_evidence_reads_near_half() -> None:
+    """Voxels of the map's leaves at least 3 length scales from every beam read 0.5 ± 0.05.
+
+    The PLSC offset β is large (P would read Φ(β / sqrt(1 + α² σf²)) ≈ 0.64 at the prior
+    under plain PLSC), so the test fails without the informed-share rule.
+    """
+    from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan
+
+    hp = Hyperparameters(0.5, 1.0, 0.05, alpha=2.0, beta=0.8)
+    angles = np.linspace(-0.3, 0.3, 7)
+    ends = np.c_[np.cos(angles), np.sin(angles)] * 4.0
+    scan = Scan(np.zeros(2), ends)
+    with OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp)) as m:
+        m.insert_scan(scan)
+        centres, prob = m.voxels()
+    # distance from each voxel centre to the nearest beam segment (origin to hit)
+    u = ends / np.linalg.norm(ends, axis=1, keepdims=True)
+    t = np.clip(centres @ u.T, 0.0, 4.0)  # (v, beams)
+    closest = t[:, :, None] * u[None, :, :]
+    dist = np.linalg.norm(centres[:, None, :] - closest, axis=2).min(axis=1)
+    far = dist >= 3 * hp.length_scale
+    assert far.sum() >= 20, far.sum()
+    assert np.all(np.abs(prob[far] - 0.5) <= 0.05), np.abs(prob[far] - 0.5).max()
+    near_hit = np.linalg.norm(centres[:, None, :] - ends[None], axis=2).min(axis=1) < 0.05
+    assert prob[near_hit].min() > 0.6  # the returns still read occupied

@@ -187,7 +187,22 @@ class EvalReport:
             )
         for method, why in self.skipped.items():
             lines.append(f"| {LABELS[method]} | not run: {why} | | | |")
+        if self.hyperparameters:
+            lines += [
+                "",
+                f"learnt hyperparameters over the {len(self.splits)} splits (mean ± std):",
+            ]
+            for name, (mean, std) in self.hyperparameter_spread().items():
+                lines.append(f"- {name}: {mean:.3g} ± {std:.2g}")
         return "\n".join(lines)
+
+    def hyperparameter_spread(self) -> dict[str, tuple[float, float]]:
+        """Mean and standard deviation (ddof 0) of each hyperparameter over the splits."""
+        rows = [dataclasses.asdict(hp) for hp in self.hyperparameters]
+        return {
+            name: (float(np.mean([r[name] for r in rows])), float(np.std([r[name] for r in rows])))
+            for name in (rows[0] if rows else {})
+        }
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-ready dict (no ROC arrays)."""

@@ -20,7 +20,7 @@ from octolgp.scan import FloatArray
 
 
 def occupancy_probability(
-    mean: FloatArray, var: FloatArray, alpha: float, beta: float
+    mean: FloatArray, var: FloatArray, alpha: float, beta: float | FloatArray
 ) -> FloatArray:
     """P(occupied) = Φ((α μ + β) / sqrt(1 + α² σ²)), in [0, 1].
 
@@ -50,7 +50,8 @@ def latent_occupancy(mean: FloatArray, var: FloatArray, hp: Hyperparameters) -> 
     ndarray of shape (m,)
         In [0, 1].
     """
-    return occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta)
+    informed = np.clip(1.0 - var / hp.signal_variance, 0.0, 1.0)
+    return occupancy_probability(mean, var + hp.noise_variance, hp.alpha, hp.beta * informed)
 
 
 def _neg_loo_log_prob(
