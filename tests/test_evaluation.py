@@ -68,6 +68,8 @@ def test_grid_numbers_equal_the_protocol_done_by_hand(intel20: list, report) -> 
         # every GP method used the hyperparameters learnt on the first training scans
         hp = learn_hyperparameters([intel20[i] for i in train_idx][:40], config)
         assert report.hyperparameters[index] == hp
+    assert len(report.novel) == len(report.splits)
+    assert all(0.0 <= x <= 1.0 for x in report.novel)
     spread = report.hyperparameter_spread()
     lengths = [hp.length_scale for hp in report.hyperparameters]
     assert spread["length_scale"] == (np.mean(lengths), np.std(lengths))

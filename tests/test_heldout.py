@@ -388,3 +388,16 @@ def test_eval_takes_the_hilbert_protocol() -> None:
     summary = report.summary()["grid"]
     assert summary["auc_worst"] <= summary["auc_mean"]
     assert "worst split" in report.table()
+
+
+def test_novel_fraction_counts_points_without_a_training_return_nearby() -> None:
+    from octolgp.bench.heldout import novel_fraction
+
+    train = [Scan(np.zeros(2), np.array([[2.0, 0.0], [0.0, 3.0], [0.0, -9.0]]), max_range=9.0)]
+    pts = np.array([[2.05, 0.0], [0.0, 3.29], [0.0, 3.31], [0.0, -9.0], [5.0, 5.0]])
+    # near the first two returns; the no-return end [0, -9] is no return
+    assert novel_fraction(train, pts, 0.3) == 3 / 5
+    assert novel_fraction(train, pts[:2], 0.3) == 0.0
+    assert novel_fraction(train, np.zeros((0, 2)), 0.3) == 0.0
+    only_no_returns = [Scan(np.zeros(2), np.array([[0.0, -9.0]]), max_range=9.0)]
+    assert novel_fraction(only_no_returns, pts, 0.3) == 1.0

@@ -48,6 +48,7 @@ from octolgp.bench.heldout import (
     heldout_points,
     heldout_split,
     hilbert_points,
+    novel_fraction,
     unknown_fraction,
 )
 from octolgp.config import Hyperparameters, MapConfig
@@ -55,6 +56,10 @@ from octolgp.errors import OctolgpError
 from octolgp.scan import Scan
 
 FloatArray = NDArray[np.float64]
+
+NOVEL_RADIUS = 0.3
+"""Metres: an occupied test point this far from every training return is a wall only the
+held-out scans hit (:attr:`EvalReport.novel`)."""
 
 METHODS = ("online", "batch", "grid", "octomap")
 """Method names of :func:`evaluate_log`, in report order."""
@@ -144,6 +149,10 @@ class EvalReport:
         ``method -> reason`` for methods that could not run (OctoMap not installed).
     hyperparameters : list of Hyperparameters
         The ones every method used, per split.
+    novel : list of float
+        Per split, the share of occupied test points with no training return within
+        :data:`NOVEL_RADIUS` metres (:func:`~octolgp.bench.heldout.novel_fraction`): walls
+        only the held-out scans hit, which bounds what any method can score.
     """
 
     splits: list[str] = field(default_factory=list)
@@ -152,6 +161,7 @@ class EvalReport:
     results: dict[str, list[SplitResult]] = field(default_factory=dict)
     skipped: dict[str, str] = field(default_factory=dict)
     hyperparameters: list[Hyperparameters] = field(default_factory=list)
+    novel: list[float] = field(default_factory=list)
     example: ExampleSplit | None = None
 
     def summary(self) -> dict[str, dict[str, float]]:
@@ -187,6 +197,13 @@ class EvalReport:
             )
         for method, why in self.skipped.items():
             lines.append(f"| {LABELS[method]} | not run: {why} | | | |")
+        if self.novel:
+            shares = ", ".join(f"{x:.2f}" for x in self.novel)
+            lines += [
+                "",
+                f"occupied test points with no training return within {NOVEL_RADIUS} m, "
+                f"per split: {shares}",
+            ]
         if self.hyperparameters:
             lines += [
                 "",
@@ -220,6 +237,7 @@ class EvalReport:
             },
             "skipped": self.skipped,
             "hyperparameters": [dataclasses.asdict(hp) for hp in self.hyperparameters],
+            "novel": self.novel,
         }
 
 
@@ -389,6 +407,7 @@ def evaluate_log(
         report.splits.append(name)
         report.n_points.append(int(labels.size))
         report.n_occupied.append(int(np.count_nonzero(labels)))
+        report.novel.append(novel_fraction(train, points[labels == 1], NOVEL_RADIUS))
         report.hyperparameters.append(hp)
         for method in wanted:
             if progress:

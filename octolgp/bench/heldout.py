@@ -288,6 +288,42 @@ def hilbert_points(
     return _labelled(origin, end, delta, length, hit, per_beam, free_len, generator)
 
 
+def novel_fraction(train: Sequence[Scan], points: ArrayLike, radius: float) -> float:
+    """Share of ``points`` with no training return within ``radius`` metres.
+
+    A property of a split, not of a method: for the occupied test points it measures how
+    much of what the held-out scans hit the training scans never hit (walls seen only
+    from the held-out stretch of the path), which no map built from the training
+    scans can be expected to read as occupied.
+
+    Parameters
+    ----------
+    train : sequence of Scan
+        The training scans; world frame.
+    points : array_like of shape (m, d)
+        Query points (metres, world frame).
+    radius : float
+        Metres, ``> 0``.
+
+    Returns
+    -------
+    float
+        In [0, 1]; 0 for no points, 1 when the training scans have no return at all.
+    """
+    from scipy.spatial import cKDTree
+
+    pts = as_points(points, "novel_fraction: points")
+    if pts.shape[0] == 0:
+        return 0.0
+    origin, end, max_range = stack_beams(_one_dimension(train, "novel_fraction"))
+    length = np.linalg.norm(end - origin, axis=1)
+    returns = end[(length > MIN_BEAM_LENGTH) & (length < max_range * (1.0 - NO_RETURN_RTOL))]
+    if returns.shape[0] == 0:
+        return 1.0
+    dist, _ = cKDTree(returns).query(pts, distance_upper_bound=radius)
+    return float(np.mean(~(dist <= radius)))
+
+
 PROTOCOLS = ("endpoint", "hilbert")
 """Test-point protocols of ``octolgp eval``: :func:`heldout_points` (one free point per
 beam) and :func:`hilbert_points`."""
