@@ -296,9 +296,11 @@ def make_parser() -> argparse.ArgumentParser:
         "eval",
         help="held-out-scan AUC of octolgp online and batch, the grid and OctoMap",
         description=(
-            "Hold out 10%% of the scans in contiguous runs, label held-out endpoints "
+            "Hold out 10% of the scans in contiguous runs, label held-out endpoints "
             "occupied and points along the beams free, map the rest with every method "
-            "and report ROC AUC and the unknown fraction (mean ± std over seeds)."
+            "and report ROC AUC (mean ± std and the worst split), the unknown fraction, "
+            "the share of held-out walls no training scan hit, and the learnt "
+            "hyperparameters."
         ),
     )
     _scan_log_options(ev)
