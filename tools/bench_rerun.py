@@ -1,11 +1,12 @@
 """Benchmark: the cost of streaming an online map to Rerun, before and after (issues #4, #17).
 
-Maps the first ``--scans`` scans of the bundled Intel log in one process, rotating the
-order over ``--repeats`` rounds: with logging off (the null sink), streaming to a recording
-file with the Rerun sink of git revision ``--before`` (loaded from ``git show``, opened as
-that revision's CLI opened it), and with the current sink (opened as ``octolgp run
---rerun-save`` opens it: :func:`octolgp.sinks.rerun.open_recording` with the default
-blueprint). Prints one table: median seconds, the ratio to the run without logging
+Maps the first ``--scans`` scans of the bundled Intel log in one process, ``--repeats``
+times, into several maps at once, each scan inserted into every map in turn (the order
+rotating), so that load from other processes falls on all alike: with logging off (the null
+sink), streaming to a recording file with the Rerun sink of git revision ``--before``
+(loaded from ``git show``, opened as that revision's CLI opened it), and with the current
+sink (opened as ``octolgp run --rerun-save`` opens it:
+:func:`octolgp.sinks.rerun.open_recording` with the default blueprint). Prints one table: median seconds, the ratio to the run without logging
 (target ≤ 1.1) and the recording size per scan (target ≤ 30 kB over the whole log).
 
     .venv/bin/python tools/bench_rerun.py --scans 910 --repeats 1
@@ -71,17 +72,38 @@ def opener(module: ModuleType, rays: int) -> Opener:
 
 def run_once(scans: list[Scan], config: MapConfig, rrd: Path | None, how: Opener | None) -> float:
     """Seconds to insert all scans (and flush the recording when there is one)."""
-    rec = sink = None
-    if rrd is not None and how is not None:
-        rec, sink = how(rrd, config.dim)
-    t0 = time.perf_counter()
-    with OnlineMap(config, sink=sink) as m:
-        for s in scans:  # one iteration per scan
-            m.insert_scan(s)
-    if rec is not None:
-        rec.flush()
-        rec.disconnect()
-    return time.perf_counter() - t0
+    return interleaved(scans, config, {"run": (rrd, how)})["run"]
+
+
+def interleaved(
+    scans: list[Scan], config: MapConfig, runs: dict[str, tuple[Path | None, Opener | None]]
+) -> dict[str, float]:
+    """Seconds per configuration, each scan inserted into every configuration's map in turn.
+
+    The order rotates with the scan, so load from other processes on a shared machine falls
+    on every configuration alike. A map's time is the sum of its ``insert_scan`` calls,
+    then its close and its recording's flush and disconnect.
+    """
+    maps: dict[str, tuple[OnlineMap, Any]] = {}
+    for name, (rrd, how) in runs.items():  # one iteration per configuration
+        rec, sink = how(rrd, config.dim) if how is not None and rrd is not None else (None, None)
+        maps[name] = (OnlineMap(config, sink=sink), rec)
+    seconds = dict.fromkeys(runs, 0.0)
+    names = list(runs)
+    for k, scan in enumerate(scans):  # one iteration per scan
+        for i in range(len(names)):
+            name = names[(i + k) % len(names)]
+            t0 = time.perf_counter()
+            maps[name][0].insert_scan(scan)
+            seconds[name] += time.perf_counter() - t0
+    for name, (m, rec) in maps.items():  # one iteration per configuration
+        t0 = time.perf_counter()
+        m.close()
+        if rec is not None:
+            rec.flush()
+            rec.disconnect()
+        seconds[name] += time.perf_counter() - t0
+    return seconds
 
 
 def main() -> int:
@@ -108,13 +130,13 @@ def main() -> int:
     names = list(runs)
     run_once(scans[:20], config, None, None)  # warm-up: thread pool, BLAS, imports
     with tempfile.TemporaryDirectory() as tmp:
-        for r in range(args.repeats):  # rotate the order against drift
-            for i in range(len(names)):
-                name = names[(i + r) % len(names)]
-                rrd = Path(tmp) / f"run{r}_{i}.rrd"
-                how = runs[name]
-                seconds[name].append(run_once(scans, config, rrd, how))
-                sizes[name].append(rrd.stat().st_size if how is not None else 0)
+        for r in range(args.repeats):  # one interleaved pass over the scans per repeat
+            files = {name: Path(tmp) / f"run{r}_{i}.rrd" for i, name in enumerate(names)}
+            spent = interleaved(scans, config, {n: (files[n], runs[n]) for n in names})
+            for name in names:  # one iteration per configuration
+                seconds[name].append(spent[name])
+                rrd = files[name]
+                sizes[name].append(rrd.stat().st_size if rrd.exists() else 0)
                 rrd.unlink(missing_ok=True)
     n = len(scans)
     t_off = float(np.median(seconds[names[0]]))
