@@ -73,8 +73,8 @@ def _scan_log_options(p: argparse.ArgumentParser) -> None:
     """The scan log argument and how to read it, shared by run, build and eval."""
     p.add_argument(
         "scans",
-        help="scan log: npz, CARMEN .log/.clf[.gz], 3DTK folder, .rrd, ROS bag, PCD, PLY, "
-        "OctoMap scan.dat/.graph",
+        help="scan log: npz, CARMEN .log/.clf[.gz], 3DTK folder, KITTI sequences/NN, .rrd, "
+        "ROS bag, PCD, PLY, OctoMap scan.dat/.graph",
     )
     p.add_argument("--format", default=None, help="scan log format (default: guessed)")
     p.add_argument(
