@@ -88,6 +88,16 @@ def test_online_result_matches_a_direct_online_map(intel20: list, report) -> Non
     assert report.results["online"][1].auc == auc(labels, m.occupancy(pts))
 
 
+def test_pictures_show_the_worst_split_of_the_first_gp_method(report) -> None:
+    aucs = [r.auc for r in report.results["online"]]
+    example = report.example
+    assert example is not None
+    assert example.method == "online"
+    assert example.split == report.splits[int(np.argmin(aucs))]
+    assert example.auc == min(aucs)
+    assert auc(example.labels, example.scores) == example.auc
+
+
 def test_leave_one_out_holds_out_each_scan_once(intel20: list) -> None:
     config = MapConfig(dim=2, resolution=0.2)
     rep = evaluate_log(intel20[:4], config, leave_one_out=True, methods=["grid"])

@@ -103,7 +103,7 @@ class SplitResult:
 
 @dataclass(frozen=True)
 class ExampleSplit:
-    """What the pictures of ``octolgp eval --out`` show: the first split's first GP map.
+    """What the pictures of ``octolgp eval --out`` show: the worst split's first GP map.
 
     Attributes
     ----------
@@ -121,6 +121,8 @@ class ExampleSplit:
         1 occupied, 0 free.
     scores : ndarray of shape (m,)
         The map's P(occupied) at the test points.
+    auc : float
+        The map's AUC on this split, the lowest of its method's splits.
     """
 
     split: str
@@ -131,6 +133,7 @@ class ExampleSplit:
     points: FloatArray
     labels: NDArray[np.int8]
     scores: FloatArray
+    auc: float = float("nan")
 
 
 @dataclass
@@ -416,17 +419,21 @@ def evaluate_log(
             built = builders[method](train)
             seconds = time.perf_counter() - t0
             probs = np.asarray(built.occupancy(points), dtype=np.float64)
-            if report.example is None and hasattr(built, "voxels"):  # the pictures' map
+            score = auc(labels, probs)
+            shown = report.example
+            if hasattr(built, "voxels") and (  # the pictures: the worst split's map
+                shown is None or (shown.method == method and score < shown.auc)
+            ):
                 centres, prob = built.voxels()
                 report.example = ExampleSplit(
-                    name, method, config.resolution, centres, prob, points, labels, probs
+                    name, method, config.resolution, centres, prob, points, labels, probs, score
                 )
             close = getattr(built, "close", None)
             if close is not None:
                 close()
             fpr, tpr = _roc(labels, probs)
             report.results[method].append(
-                SplitResult(auc(labels, probs), unknown_fraction(probs), seconds, fpr, tpr)
+                SplitResult(score, unknown_fraction(probs), seconds, fpr, tpr)
             )
     return report
 
