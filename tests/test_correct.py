@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import collections
 import subprocess
 import sys
 from pathlib import Path
@@ -337,31 +336,3 @@ def test_a_map_saved_from_memory_has_no_journal_to_correct(tmp_path: Path) -> No
         with pytest.raises(OctolgpError, match="no journal"):
             back.correct_scans({2: pose(0.1, 0.0, 0.0)})
         assert snapshot(back) == before
-
-
-def test_the_rerun_stream_shows_a_correction(tmp_path: Path) -> None:
-    """Rebuilt leaves are re-logged; a leaf the correction emptied turns unknown grey."""
-    import rerun as rr
-    from test_stream import Recorder, _rows
-
-    rrd = tmp_path / "m.rrd"
-    rec = rr.RecordingStream("octolgp-test")
-    rec.save(rrd)
-    sink = Recorder(rec)
-    far = Scan(origin=[30.0, 30.0], points=[[31.0, 30.0], [30.0, 31.5]])
-    with OnlineMap(config(), path=tmp_path / "m.octolgp", sink=sink) as m:
-        m.insert_scans([office_scan((0.0, 0.0)), far])
-        before = collections.Counter(sink.refits)
-        stray = set(m.store)
-        update = m.correct_scans({2: pose(-30.0, -30.0, 0.0)})
-        stray -= set(m.store)
-    rec.flush()
-    rec.disconnect()
-    assert update.removed_leaves == len(stray) > 0
-    rows = _rows(rrd)
-    rebuilt = sink.refits - before
-    assert sum(rebuilt.values()) == update.refit_leaves
-    for key in stray:  # static quad, its fits, then the grey of its removal
-        assert rows[f"/world/map/leaves/{key}"] == 1 + before[key] + 1
-    for key in rebuilt:
-        assert rows[f"/world/map/leaves/{key}"] == 1 + sink.refits[key]
