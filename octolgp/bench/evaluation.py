@@ -61,6 +61,9 @@ NOVEL_RADIUS = 0.3
 """Metres: an occupied test point this far from every training return is a wall only the
 held-out scans hit (:attr:`EvalReport.novel`)."""
 
+CROP_MARGIN = 2.0
+"""Metres of map drawn around the middle 99 % of the test points in ``errors.png``."""
+
 METHODS = ("online", "batch", "grid", "octomap")
 """Method names of :func:`evaluate_log`, in report order."""
 
@@ -488,7 +491,8 @@ def plot_errors(example: ExampleSplit, path: str | Path, title: str = "") -> Non
 
     Free points the map calls occupied (P > 0.5) are red, occupied points it calls free
     (P < 0.5) blue, points it leaves unknown (P = 0.5) orange; correct points are not
-    drawn. A 3D map is drawn as its slice at the median test-point height.
+    drawn. The view is cropped to the test points (:data:`CROP_MARGIN`). A 3D map is
+    drawn as its slice at the median test-point height.
 
     Parameters
     ----------
@@ -526,6 +530,10 @@ def plot_errors(example: ExampleSplit, path: str | Path, title: str = "") -> Non
         ax.scatter(
             points[mask, 0], points[mask, 1], s=2, c=colour, label=f"{name}: {int(mask.sum())}"
         )
+    if points.shape[0]:  # the test points' region, not the reach of no-return rays
+        low, high = np.percentile(points, [0.5, 99.5], axis=0)
+        ax.set_xlim(low[0] - CROP_MARGIN, high[0] + CROP_MARGIN)
+        ax.set_ylim(low[1] - CROP_MARGIN, high[1] + CROP_MARGIN)
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal")
