@@ -294,12 +294,10 @@ class OnlineConfig:
         Lattice engine: scans counted per voxel and class (occupied, free). ``1``
         keeps whether a voxel was ever seen occupied and ever seen free, so a
         static revisit changes nothing and costs nothing. Default 1.
-    free_weight : float or None
+    free_weight : float
         Lattice engine: a voxel seen free counts this much of a voxel seen occupied
         (its noise variance is ``σn² / free_weight``), so that free space, which a
         scan observes in far more voxels than it hits, does not swamp the returns.
-        ``None`` (default): :data:`FREE_WEIGHT_2D` in 2D, :data:`FREE_WEIGHT_3D` in 3D
-        (:attr:`MapConfig.free_weight`).
         Default 0.3: held-out AUC on Intel was flat over 0.1-0.3, FR079 rose with it
         up to 0.5, the simulated lidar room peaked at 0.3 (``BENCHMARKS.md``).
     inducing_spacing : float or None
@@ -349,7 +347,7 @@ class OnlineConfig:
     kernel_cache_mb: float = 64.0
     engine: str = "lattice"
     evidence_cap: int = 1
-    free_weight: float | None = None
+    free_weight: float = 0.3
     inducing_spacing: float | None = None
     max_inducing_per_axis: int = 0
     clear_scans: int | None = None
@@ -382,8 +380,7 @@ class OnlineConfig:
                 f"OnlineConfig.engine must be 'lattice' or 'exact', got {self.engine!r}"
             )
         _integer("OnlineConfig", "evidence_cap", self.evidence_cap, 1, 255)
-        if self.free_weight is not None:
-            _positive("OnlineConfig", "free_weight", self.free_weight)
+        _positive("OnlineConfig", "free_weight", self.free_weight)
         if self.inducing_spacing is not None:
             _positive("OnlineConfig", "inducing_spacing", self.inducing_spacing)
         _integer("OnlineConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 0, 16)
@@ -405,16 +402,6 @@ DEFAULT_CLEAR_SCANS = 5
 
 CLEAR_MARGIN_VOXELS = 5
 """The default ``clear_margin`` in voxels (see :class:`OnlineConfig`)."""
-
-FREE_WEIGHT_2D = 0.08
-"""The lattice engine's default free weight in 2D. Held-out AUC (Hilbert maps' protocol, 5
-seeds) rose on all six small real logs from 0.3 to 0.08 and fell again below it (FHW,
-Belgioioso): thin 2D walls seen from one side keep the free space next to them from
-reading more confidently free than the wall reads occupied (BENCHMARKS.md, issue #16)."""
-
-FREE_WEIGHT_3D = 0.3
-"""The default free weight in 3D: the simulated lidar room is best at 0.3 and loses
-returns at 0.1 (``docs/design-realtime-3d.md``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -534,17 +521,6 @@ class MapConfig:
         if self.online.learn_scans is not None:
             return self.online.learn_scans
         return 40 if self.dim == 2 else 5
-
-    @property
-    def free_weight(self) -> float:
-        """Weight of a free voxel against an occupied one.
-
-        ``online.free_weight``, or the dimension's default (:data:`FREE_WEIGHT_2D`,
-        :data:`FREE_WEIGHT_3D`).
-        """
-        if self.online.free_weight is not None:
-            return self.online.free_weight
-        return FREE_WEIGHT_2D if self.dim == 2 else FREE_WEIGHT_3D
 
     @property
     def free_margin(self) -> float:

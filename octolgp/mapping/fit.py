@@ -239,7 +239,7 @@ def fit_lattice_leaves(
     parts = [(hits[lo:hi], frees[lo:hi], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
 
     def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
-        return lattice_posterior(tables, part[0], part[1], config.free_weight, part[2])
+        return lattice_posterior(tables, part[0], part[1], oc.free_weight, part[2])
 
     results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
     mean = np.concatenate([r[0] for r in results])
