@@ -1,7 +1,8 @@
-"""Argument checks and file output shared by the exporters (OctoMap, PLY, PNG)."""
+"""Argument checks and file output shared by the exporters (OctoMap, PLY, PCD, PNG)."""
 
 from __future__ import annotations
 
+import io
 import os
 from typing import Any
 
@@ -50,6 +51,46 @@ def as_prob(prob: ArrayLike, count: int) -> FloatArray:
     if p.size and (p.min() < 0.0 or p.max() > 1.0):
         raise OctolgpError(f"prob must lie in [0, 1], got [{p.min():g}, {p.max():g}]")
     return p
+
+
+def xyz_prob_body(centres: ArrayLike, prob: ArrayLike, *, binary: bool) -> tuple[int, bytes]:
+    """Voxel centres and P(occupied) as float32 ``x y z prob`` records, the body PLY and PCD share.
+
+    Parameters
+    ----------
+    centres : array_like of float, shape (k, 3) or (k, 2)
+        Voxel centres in the world frame, metres; 2D centres get ``z = 0``.
+    prob : array_like of float, shape (k,)
+        P(occupied) per centre, in [0, 1].
+    binary : bool
+        Packed little-endian records, or one text row per point with 9 significant digits
+        (which round-trip float32).
+
+    Returns
+    -------
+    count : int
+        ``k``, the number of records.
+    body : bytes
+
+    Raises
+    ------
+    OctolgpError
+        On a bad shape or non-finite value, or ``prob`` outside [0, 1].
+    """
+    c = as_centres(centres, (2, 3))
+    p = as_prob(prob, c.shape[0])
+    if c.shape[1] == 2:
+        c = np.column_stack([c, np.zeros(c.shape[0])])
+    record = np.empty(c.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("prob", "<f4")])
+    for axis, name in enumerate("xyz"):
+        record[name] = c[:, axis]
+    record["prob"] = p
+    if binary:
+        return c.shape[0], record.tobytes()
+    text = io.StringIO()
+    rows = np.column_stack([record[name] for name in ("x", "y", "z", "prob")])
+    np.savetxt(text, rows, fmt="%.9g")
+    return c.shape[0], text.getvalue().encode("ascii")
 
 
 def write_bytes(path: PathLike, chunks: list[bytes]) -> None:

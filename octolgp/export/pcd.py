@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import io
-
-import numpy as np
 from numpy.typing import ArrayLike
 
-from octolgp.export.common import PathLike, as_centres, as_prob, write_bytes
+from octolgp.export.common import PathLike, write_bytes, xyz_prob_body
 
 __all__ = ["write_pcd"]
 
@@ -38,15 +35,7 @@ def write_pcd(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bo
         On a bad shape or non-finite value in ``centres`` or ``prob``, ``prob`` outside
         [0, 1], or a ``path`` that cannot be written.
     """
-    c = as_centres(centres, (2, 3))
-    p = as_prob(prob, c.shape[0])
-    if c.shape[1] == 2:
-        c = np.column_stack([c, np.zeros(c.shape[0])])
-    n = c.shape[0]
-    record = np.empty(n, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("prob", "<f4")])
-    for axis, name in enumerate("xyz"):
-        record[name] = c[:, axis]
-    record["prob"] = p
+    n, body = xyz_prob_body(centres, prob, binary=binary)
     header = (
         "# .PCD v0.7 - Point Cloud Data file format\n"
         "# octolgp occupied voxel centres, P(occupied) in prob\n"
@@ -54,11 +43,4 @@ def write_pcd(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bo
         f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
         f"DATA {'binary' if binary else 'ascii'}\n"
     ).encode("ascii")
-    if binary:
-        body = record.tobytes()
-    else:
-        text = io.StringIO()
-        rows = np.column_stack([record[name] for name in ("x", "y", "z", "prob")])
-        np.savetxt(text, rows, fmt="%.9g")  # 9 significant digits round-trip float32
-        body = text.getvalue().encode("ascii")
     write_bytes(path, [header, body])

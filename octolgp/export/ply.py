@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import io
-
-import numpy as np
 from numpy.typing import ArrayLike
 
-from octolgp.export.common import PathLike, as_centres, as_prob, write_bytes
+from octolgp.export.common import PathLike, write_bytes, xyz_prob_body
 
 
 def write_ply(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bool = True) -> None:
@@ -31,24 +28,10 @@ def write_ply(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bo
         On a bad shape or non-finite value in ``centres`` or ``prob``, ``prob``
         outside [0, 1], or a ``path`` that cannot be written.
     """
-    c = as_centres(centres, (2, 3))
-    p = as_prob(prob, c.shape[0])
-    if c.shape[1] == 2:
-        c = np.column_stack([c, np.zeros(c.shape[0])])
-    vertex = np.empty(c.shape[0], dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("prob", "<f4")])
-    for axis, name in enumerate("xyz"):
-        vertex[name] = c[:, axis]
-    vertex["prob"] = p
+    n, body = xyz_prob_body(centres, prob, binary=binary)
     fmt = "binary_little_endian" if binary else "ascii"
     header = (
-        f"ply\nformat {fmt} 1.0\ncomment octolgp occupancy\nelement vertex {c.shape[0]}\n"
+        f"ply\nformat {fmt} 1.0\ncomment octolgp occupancy\nelement vertex {n}\n"
         "property float x\nproperty float y\nproperty float z\nproperty float prob\nend_header\n"
     ).encode("ascii")
-    if binary:
-        body = vertex.tobytes()
-    else:
-        text = io.StringIO()
-        rows = np.column_stack([vertex[name] for name in ("x", "y", "z", "prob")])
-        np.savetxt(text, rows, fmt="%.9g")  # 9 significant digits round-trip float32
-        body = text.getvalue().encode("ascii")
     write_bytes(path, [header, body])
