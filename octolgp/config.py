@@ -294,12 +294,12 @@ class OnlineConfig:
         Lattice engine: scans counted per voxel and class (occupied, free). ``1``
         keeps whether a voxel was ever seen occupied and ever seen free, so a
         static revisit changes nothing and costs nothing. Default 1.
-    free_weight : float
+    free_weight : float or None
         Lattice engine: a voxel seen free counts this much of a voxel seen occupied
         (its noise variance is ``σn² / free_weight``), so that free space, which a
         scan observes in far more voxels than it hits, does not swamp the returns.
-        Default 0.3: held-out AUC on Intel was flat over 0.1-0.3, FR079 rose with it
-        up to 0.5, the simulated lidar room peaked at 0.3 (``BENCHMARKS.md``).
+        ``None`` (default): :data:`FREE_WEIGHT_2D` in 2D, :data:`FREE_WEIGHT_3D` in 3D
+        (:attr:`MapConfig.free_weight`). A cleared voxel weighs ``cleared_weight``.
     inducing_spacing : float or None
         Lattice engine: largest spacing of the inducing lattice as a fraction of the
         length scale; the lattice gets ``ceil(halo box edge / (spacing × l))`` points
@@ -319,12 +319,21 @@ class OnlineConfig:
         object registers with its first return (:mod:`octolgp.observations`). ``0``:
         a static world, every return and free observation kept for good. ``None``
         (default): 5 with the lattice engine (:attr:`MapConfig.clear_scans`), 0 with
-        the exact one, which keeps the first evidence per voxel. In 0..255. With 5 a
+        the exact one, which keeps the first evidence per voxel. In 0..254. With 5 a
         moved crate clears in 6 scans and an opened door in 15.5 where OctoMap's default
         probabilities take 8 and 17 (``tools/bench_dynamic.py``), and held-out AUC is
         above the static map's on Intel (0.9862 against 0.9848) and FR079 (0.9559
         against 0.9501; 8 gives 0.9631 but clears a scan or two later than OctoMap;
         ``BENCHMARKS.md``).
+    cleared_weight : float
+        Lattice engine, with ``clear_scans`` > 0: the weight of a *cleared* voxel's
+        free evidence, one whose returns were forgotten after ``clear_scans`` scans saw
+        it free (and no return since). Above ``free_weight`` because forgetting is
+        evidence that something moved: at 0.08 for ordinary free voxels the cells of a
+        moved crate still holding returns would keep their cleared neighbours occupied
+        for a look or two beyond ``clear_scans``. Default 0.5: the crate's every cell
+        reads free by its ``clear_scans``-th look (``tests/test_dynamic.py``); held-out
+        AUC was higher than at 1.0 on Intel and FHW (``BENCHMARKS.md``, issue #16).
     clear_margin : float or None
         With ``clear_scans`` > 0: metres before a return within which its beam's free
         segment does not count towards forgetting (it is still free evidence), as a beam
@@ -347,10 +356,11 @@ class OnlineConfig:
     kernel_cache_mb: float = 64.0
     engine: str = "lattice"
     evidence_cap: int = 1
-    free_weight: float = 0.3
+    free_weight: float | None = None
     inducing_spacing: float | None = None
     max_inducing_per_axis: int = 0
     clear_scans: int | None = None
+    cleared_weight: float = 0.5
     clear_margin: float | None = None
 
     def __post_init__(self) -> None:
@@ -380,7 +390,9 @@ class OnlineConfig:
                 f"OnlineConfig.engine must be 'lattice' or 'exact', got {self.engine!r}"
             )
         _integer("OnlineConfig", "evidence_cap", self.evidence_cap, 1, 255)
-        _positive("OnlineConfig", "free_weight", self.free_weight)
+        if self.free_weight is not None:
+            _positive("OnlineConfig", "free_weight", self.free_weight)
+        _positive("OnlineConfig", "cleared_weight", self.cleared_weight)
         if self.inducing_spacing is not None:
             _positive("OnlineConfig", "inducing_spacing", self.inducing_spacing)
         _integer("OnlineConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 0, 16)
@@ -389,7 +401,7 @@ class OnlineConfig:
         if self.max_inducing_per_axis == 1:
             raise OctolgpError("OnlineConfig.max_inducing_per_axis must be 0 or >= 2, got 1")
         if self.clear_scans is not None:
-            _integer("OnlineConfig", "clear_scans", self.clear_scans, 0, 255)
+            _integer("OnlineConfig", "clear_scans", self.clear_scans, 0, 254)
             if self.clear_scans and self.engine != "lattice":
                 raise OctolgpError(
                     "OnlineConfig.clear_scans must be 0 or None with engine='exact' "
@@ -402,6 +414,16 @@ DEFAULT_CLEAR_SCANS = 5
 
 CLEAR_MARGIN_VOXELS = 5
 """The default ``clear_margin`` in voxels (see :class:`OnlineConfig`)."""
+
+FREE_WEIGHT_2D = 0.08
+"""The lattice engine's default free weight in 2D. Held-out AUC (Hilbert maps' protocol, 5
+seeds) rose on all six small real logs from 0.3 to 0.08 and fell again below it (FHW,
+Belgioioso): a thin 2D wall is one voxel of returns beside many voxels of free space, and
+at 0.3 the free space pulls the wall's faces towards free (BENCHMARKS.md, issue #16)."""
+
+FREE_WEIGHT_3D = 0.3
+"""The default free weight in 3D: the simulated lidar room is best at 0.3 and loses
+returns at 0.1 (``docs/design-realtime-3d.md``)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -521,6 +543,17 @@ class MapConfig:
         if self.online.learn_scans is not None:
             return self.online.learn_scans
         return 40 if self.dim == 2 else 5
+
+    @property
+    def free_weight(self) -> float:
+        """Weight of a free voxel against an occupied one.
+
+        ``online.free_weight``, or the dimension's default (:data:`FREE_WEIGHT_2D`,
+        :data:`FREE_WEIGHT_3D`).
+        """
+        if self.online.free_weight is not None:
+            return self.online.free_weight
+        return FREE_WEIGHT_2D if self.dim == 2 else FREE_WEIGHT_3D
 
     @property
     def free_margin(self) -> float:

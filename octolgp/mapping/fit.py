@@ -36,7 +36,7 @@ from octolgp.gp.regression import fit_predict
 from octolgp.mapping.cache import KernelCache, leaf_blocks
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
-from octolgp.observations import effective_counts
+from octolgp.observations import effective_counts, free_weights
 from octolgp.partition import partition
 from octolgp.scan import FloatArray
 from octolgp.training import TrainingData
@@ -236,10 +236,14 @@ def fit_lattice_leaves(
     points = return_points(leaves, LeafGrid.from_config(config), tables, oc.evidence_cap)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    parts = [(hits[lo:hi], frees[lo:hi], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
+    weights = free_weights(stored[:, 1], config.free_weight, oc.cleared_weight, config.clear_scans)
+    parts = [
+        (hits[lo:hi], frees[lo:hi] * weights[lo:hi], points[lo:hi])
+        for lo, hi in itertools.pairwise(bounds)
+    ]
 
     def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
-        return lattice_posterior(tables, part[0], part[1], oc.free_weight, part[2])
+        return lattice_posterior(tables, part[0], part[1], 1.0, part[2])
 
     results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
     mean = np.concatenate([r[0] for r in results])
