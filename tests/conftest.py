@@ -1,15 +1,20 @@
-"""Shared test set-up: Hypothesis profiles, and killing a child process mid-mission.
+"""Shared test set-up: Hypothesis profiles, killing a child process mid-mission, CLI errors.
 
 ``ci`` (the default) is deterministic and bounded; the fuzz tests in
 ``test_fuzz.py`` cap themselves lower still under it (``FUZZ_EXAMPLES``) so the
 whole file runs in well under a minute. ``fuzz`` (``make fuzz``, or
 ``HYPOTHESIS_PROFILE=fuzz``) is random and long: thousands of examples per test.
+
+``cli_exit_2`` runs ``python -m octolgp.cli`` in a real process and checks the
+contract for bad input: exit status 2 and one ``octolgp: error:`` line, no traceback.
 """
 
 import os
 import signal
 import subprocess
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -49,3 +54,37 @@ def _sigkill_after(child: subprocess.Popen[str], count: int) -> None:
 def sigkill_after() -> Callable[[subprocess.Popen[str], int], None]:
     """Kill a mapping child process (printing its scan count per insert) after ``count``."""
     return _sigkill_after
+
+
+def _cli_exit_2(
+    argv: Sequence[str], cwd: Path, message: str = "", prefix: str = "octolgp: error:"
+) -> str:
+    """Run the CLI on ``argv`` in ``cwd``; check it exits 2 with one error line; return it.
+
+    The line must start with ``prefix`` and contain ``message``; stderr must hold no
+    traceback. (argparse's own errors name the subcommand: ``octolgp run: error:``.)
+    """
+    proc = subprocess.run(
+        [sys.executable, "-m", "octolgp.cli", *argv],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(prefix), lines[0]
+    assert message in lines[0]
+    return lines[0]
+
+
+@pytest.fixture
+def cli_exit_2() -> Callable[..., str]:
+    """Run the CLI in a subprocess on bad input: exit 2, one error line, no traceback.
+
+    Called as ``cli_exit_2(argv, cwd, message="", prefix="octolgp: error:")``; returns
+    the error line.
+    """
+    return _cli_exit_2

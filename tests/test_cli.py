@@ -1,7 +1,6 @@
 """End to end: the CLI and the paper benchmark on small inputs."""
 
-import subprocess
-import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -30,19 +29,10 @@ def test_simulate_writes_scan_log_with_truth(tmp_path: Path) -> None:
         ["simulate", "paper2d", "--out", "/proc/forbidden/x.npz"],
     ],
 )
-def test_bad_input_exits_2_with_one_line(argv: list[str], tmp_path: Path) -> None:
-    proc = subprocess.run(
-        [sys.executable, "-m", "octolgp.cli", *argv],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        check=False,
-    )
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1
-    assert lines[0].startswith("octolgp: error:")
-    assert "Traceback" not in proc.stderr
+def test_bad_input_exits_2_with_one_line(
+    argv: list[str], tmp_path: Path, cli_exit_2: Callable[..., str]
+) -> None:
+    cli_exit_2(argv, tmp_path)
 
 
 def test_version_is_eager(capsys: pytest.CaptureFixture[str]) -> None:
@@ -118,18 +108,11 @@ def test_run_then_query_reads_the_map(tmp_path: Path) -> None:
         ["query", "bad.log", "--points", "bad.log", "--out", "p.npy"],
     ],
 )
-def test_run_and_query_bad_input_exit_2(argv: list[str], tmp_path: Path) -> None:
+def test_run_and_query_bad_input_exit_2(
+    argv: list[str], tmp_path: Path, cli_exit_2: Callable[..., str]
+) -> None:
     (tmp_path / "bad.log").write_text("FLASER 3 1.0 1.0\n")
-    proc = subprocess.run(
-        [sys.executable, "-m", "octolgp.cli", *argv],
-        capture_output=True,
-        text=True,
-        cwd=tmp_path,
-        check=False,
-    )
-    assert proc.returncode == 2, proc.stderr
-    assert len(proc.stderr.strip().splitlines()) == 1
-    assert "Traceback" not in proc.stderr
+    cli_exit_2(argv, tmp_path, prefix="octolgp")  # argparse's: "octolgp run: error: ..."
 
 
 def test_run_skip_bad_skips_and_counts_malformed_lines(

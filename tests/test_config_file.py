@@ -2,9 +2,8 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -104,16 +103,6 @@ def test_missing_file_and_from_dict_names() -> None:
 # --- the command line ---------------------------------------------------------------------------
 
 
-def _cli(*argv: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "octolgp.cli", *argv],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        check=False,
-    )
-
-
 def test_dump_config_defaults_file_and_flags(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -142,14 +131,11 @@ def test_dump_config_defaults_file_and_flags(
     assert tomllib.loads(capsys.readouterr().out)["online"]["learn_scans"] == 9
 
 
-def test_bad_config_exits_2_with_one_line(tmp_path: Path) -> None:
+def test_bad_config_exits_2_with_one_line(tmp_path: Path, cli_exit_2: Callable[..., str]) -> None:
     _write(tmp_path / "bad.toml", "resolution = 0.1\n[online]\nclear_scan = 3\n")
-    proc = _cli("run", str(INTEL20), "--out", "m.octolgp", "--config", "bad.toml", cwd=tmp_path)
-    assert proc.returncode == 2
-    lines = proc.stderr.strip().splitlines()
-    assert len(lines) == 1
-    assert lines[0].startswith("octolgp: error: config file 'bad.toml': online.clear_scan: ")
-    assert "Traceback" not in proc.stderr
+    argv = ["run", str(INTEL20), "--out", "m.octolgp", "--config", "bad.toml"]
+    line = cli_exit_2(argv, tmp_path)
+    assert line.startswith("octolgp: error: config file 'bad.toml': online.clear_scan: ")
     assert not (tmp_path / "m.octolgp").exists()
 
 

@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -346,24 +345,18 @@ def test_cli_export_nav2_and_pcd(map2d: Path, map3d: Path, tmp_path: Path) -> No
     ],
 )
 def test_cli_export_bad_input_exit_2(
-    map2d: Path, map3d: Path, tmp_path: Path, which: str, extra: list[str], message: str
+    map2d: Path,
+    map3d: Path,
+    tmp_path: Path,
+    which: str,
+    extra: list[str],
+    message: str,
+    cli_exit_2: Callable[..., str],
 ) -> None:
     source = map3d if which == "3d" else map2d
     argv = ["export", str(source), "--out", str(tmp_path / "x.pgm"), *extra]
     if which == "3d" and not extra:  # once through a real process: one line, no traceback
-        proc = subprocess.run(
-            [sys.executable, "-m", "octolgp.cli", *argv],
-            capture_output=True,
-            text=True,
-            cwd=tmp_path,
-            check=False,
-        )
-        assert proc.returncode == 2
-        lines = proc.stderr.strip().splitlines()
-        assert len(lines) == 1
-        assert lines[0].startswith("octolgp: error:")
-        assert message in lines[0]
-        assert "Traceback" not in proc.stderr
+        cli_exit_2(argv, tmp_path, message)
         return
     try:
         status = main(argv)
