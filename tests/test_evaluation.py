@@ -70,6 +70,8 @@ def test_grid_numbers_equal_the_protocol_done_by_hand(intel20: list, report) -> 
         assert report.hyperparameters[index] == hp
     assert len(report.novel) == len(report.splits)
     assert all(0.0 <= x <= 1.0 for x in report.novel)
+    assert len(report.seen_free) == len(report.splits)
+    assert all(0.0 <= s <= n for s, n in zip(report.seen_free, report.novel, strict=True))
     spread = report.hyperparameter_spread()
     lengths = [hp.length_scale for hp in report.hyperparameters]
     assert spread["length_scale"] == (np.mean(lengths), np.std(lengths))

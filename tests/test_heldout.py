@@ -401,3 +401,26 @@ def test_novel_fraction_counts_points_without_a_training_return_nearby() -> None
     assert novel_fraction(train, np.zeros((0, 2)), 0.3) == 0.0
     only_no_returns = [Scan(np.zeros(2), np.array([[0.0, -9.0]]), max_range=9.0)]
     assert novel_fraction(only_no_returns, pts, 0.3) == 1.0
+
+
+def test_seen_free_fraction_counts_novel_points_the_training_looked_through() -> None:
+    from octolgp import MapConfig
+    from octolgp.bench.heldout import novel_fraction, seen_free_fraction
+
+    train = [Scan(np.zeros(2), np.array([[2.0, 0.0], [0.0, 3.0], [0.0, -9.0]]), max_range=9.0)]
+    pts = np.array(
+        [
+            [2.05, 0.0],  # near a return: not novel
+            [1.0, 0.05],  # on the first beam's free segment: novel, looked through
+            [0.05, -5.05],  # on the no-return beam: novel, looked through
+            [5.0, 5.0],  # never seen
+            [0.0, 3.31],  # beyond the second return: novel, never looked through
+        ]
+    )
+    config = MapConfig(dim=2, resolution=0.1)
+    assert novel_fraction(train, pts, 0.3) == 4 / 5
+    assert seen_free_fraction(train, pts, 0.3, config) == 2 / 5
+    assert seen_free_fraction(train, pts[[0, 3, 4]], 0.3, config) == 0.0
+    assert seen_free_fraction(train, np.zeros((0, 2)), 0.3, config) == 0.0
+    # a point the training hit is never counted, even where other beams crossed it
+    assert seen_free_fraction(train, pts[:1], 0.3, config) == 0.0

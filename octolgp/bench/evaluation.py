@@ -49,6 +49,7 @@ from octolgp.bench.heldout import (
     heldout_split,
     hilbert_points,
     novel_fraction,
+    seen_free_fraction,
     unknown_fraction,
 )
 from octolgp.config import Hyperparameters, MapConfig
@@ -159,6 +160,10 @@ class EvalReport:
         Per split, the share of occupied test points with no training return within
         :data:`NOVEL_RADIUS` metres (:func:`~octolgp.bench.heldout.novel_fraction`): walls
         only the held-out scans hit, which bounds what any method can score.
+    seen_free : list of float
+        Per split, the share of occupied test points among those whose voxel a training
+        beam's free segment crossed (:func:`~octolgp.bench.heldout.seen_free_fraction`):
+        the training scans looked through where the held-out scans hit something.
     """
 
     splits: list[str] = field(default_factory=list)
@@ -168,6 +173,7 @@ class EvalReport:
     skipped: dict[str, str] = field(default_factory=dict)
     hyperparameters: list[Hyperparameters] = field(default_factory=list)
     novel: list[float] = field(default_factory=list)
+    seen_free: list[float] = field(default_factory=list)
     example: ExampleSplit | None = None
 
     def summary(self) -> dict[str, dict[str, float]]:
@@ -210,6 +216,9 @@ class EvalReport:
                 f"occupied test points with no training return within {NOVEL_RADIUS} m, "
                 f"per split: {shares}",
             ]
+        if self.seen_free:
+            shares = ", ".join(f"{x:.2f}" for x in self.seen_free)
+            lines.append(f"of them, in voxels the training scans saw free, per split: {shares}")
         if self.hyperparameters:
             lines += [
                 "",
@@ -244,6 +253,7 @@ class EvalReport:
             "skipped": self.skipped,
             "hyperparameters": [dataclasses.asdict(hp) for hp in self.hyperparameters],
             "novel": self.novel,
+            "seen_free": self.seen_free,
         }
 
 
@@ -414,6 +424,9 @@ def evaluate_log(
         report.n_points.append(int(labels.size))
         report.n_occupied.append(int(np.count_nonzero(labels)))
         report.novel.append(novel_fraction(train, points[labels == 1], NOVEL_RADIUS))
+        report.seen_free.append(
+            seen_free_fraction(train, points[labels == 1], NOVEL_RADIUS, config)
+        )
         report.hyperparameters.append(hp)
         for method in wanted:
             if progress:

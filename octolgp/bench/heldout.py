@@ -15,6 +15,7 @@ Protocol
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from typing import Protocol
@@ -23,6 +24,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from sklearn.metrics import roc_auc_score
 
+from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.scan import Scan, as_points
 from octolgp.training import stack_beams
@@ -288,6 +290,20 @@ def hilbert_points(
     return _labelled(origin, end, delta, length, hit, per_beam, free_len, generator)
 
 
+def _novel_mask(train: list[Scan], pts: FloatArray, radius: float) -> np.ndarray:
+    """Which of ``pts`` (m, d) have no training return within ``radius`` metres."""
+    from scipy.spatial import cKDTree
+
+    origin, end, max_range = stack_beams(train)
+    length = np.linalg.norm(end - origin, axis=1)
+    returns = end[(length > MIN_BEAM_LENGTH) & (length < max_range * (1.0 - NO_RETURN_RTOL))]
+    if returns.shape[0] == 0:
+        return np.ones(pts.shape[0], dtype=bool)
+    dist, _ = cKDTree(returns).query(pts, distance_upper_bound=radius)
+    out: np.ndarray = ~(dist <= radius)
+    return out
+
+
 def novel_fraction(train: Sequence[Scan], points: ArrayLike, radius: float) -> float:
     """Share of ``points`` with no training return within ``radius`` metres.
 
@@ -310,18 +326,58 @@ def novel_fraction(train: Sequence[Scan], points: ArrayLike, radius: float) -> f
     float
         In [0, 1]; 0 for no points, 1 when the training scans have no return at all.
     """
-    from scipy.spatial import cKDTree
-
     pts = as_points(points, "novel_fraction: points")
     if pts.shape[0] == 0:
         return 0.0
-    origin, end, max_range = stack_beams(_one_dimension(train, "novel_fraction"))
-    length = np.linalg.norm(end - origin, axis=1)
-    returns = end[(length > MIN_BEAM_LENGTH) & (length < max_range * (1.0 - NO_RETURN_RTOL))]
-    if returns.shape[0] == 0:
-        return 1.0
-    dist, _ = cKDTree(returns).query(pts, distance_upper_bound=radius)
-    return float(np.mean(~(dist <= radius)))
+    return float(np.mean(_novel_mask(_one_dimension(train, "novel_fraction"), pts, radius)))
+
+
+def seen_free_fraction(
+    train: Sequence[Scan], points: ArrayLike, radius: float, config: MapConfig
+) -> float:
+    """Share of ``points`` far from every training return but in voxels it saw free.
+
+    Counts the points with no training return within ``radius`` metres whose voxel a
+    training beam's free segment crossed. For the occupied test points: held-out returns
+    where the training scans looked through and saw nothing, so the scans contradict each other there (a pose error between the
+    two stretches of the path, something that moved, glass); the rest of the novel points
+    (:func:`novel_fraction`) lie where the training scans never looked. Free segments as the
+    map's (:func:`octolgp.observations.observe`, static counts).
+
+    Parameters
+    ----------
+    train : sequence of Scan
+        The training scans; world frame.
+    points : array_like of shape (m, d)
+        Query points (metres, world frame).
+    radius : float
+        Metres, ``> 0``.
+    config : MapConfig
+        Uses ``dim``, ``resolution``, ``tree_depth`` and ``free_margin``.
+
+    Returns
+    -------
+    float
+        In [0, :func:`novel_fraction`]; 0 for no points.
+    """
+    from octolgp.geometry.keys import pack_keys
+    from octolgp.observations import observe
+
+    pts = as_points(points, "seen_free_fraction: points")
+    if pts.shape[0] == 0:
+        return 0.0
+    scans = _one_dimension(train, "seen_free_fraction")
+    novel = _novel_mask(scans, pts, radius)
+    static = dataclasses.replace(config, online=dataclasses.replace(config.online, clear_scans=0))
+    obs = observe(scans, static)
+    seen_free = np.sort(pack_keys(obs.keys[obs.frees > 0]))
+    offset = 1 << (config.tree_depth - 1)
+    packed = pack_keys(np.floor(pts[novel] / config.resolution).astype(np.int64) + offset)
+    if seen_free.size == 0:
+        return 0.0
+    at = np.minimum(np.searchsorted(seen_free, packed), seen_free.size - 1)
+    crossed = int(np.count_nonzero(seen_free[at] == packed))
+    return crossed / pts.shape[0]
 
 
 PROTOCOLS = ("endpoint", "hilbert")
