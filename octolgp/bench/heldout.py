@@ -377,7 +377,7 @@ def seen_free_fraction(
         return 0.0
     at = np.minimum(np.searchsorted(seen_free, packed), seen_free.size - 1)
     crossed = int(np.count_nonzero(seen_free[at] == packed))
-    return crossed / pts.shape[0]
+    return crossed / len(pts)
 
 
 PROTOCOLS = ("endpoint", "hilbert")
