@@ -325,15 +325,17 @@ class OnlineConfig:
         above the static map's on Intel (0.9862 against 0.9848) and FR079 (0.9559
         against 0.9501; 8 gives 0.9631 but clears a scan or two later than OctoMap;
         ``BENCHMARKS.md``).
-    cleared_weight : float
+    cleared_weight : float or None
         Lattice engine, with ``clear_scans`` > 0: the weight of a *cleared* voxel's
         free evidence, one whose returns were forgotten after ``clear_scans`` scans saw
-        it free (and no return since). Above ``free_weight`` because forgetting is
-        evidence that something moved: at 0.08 for ordinary free voxels the cells of a
-        moved crate still holding returns would keep their cleared neighbours occupied
-        for a look or two beyond ``clear_scans``. Default 0.5: the crate's every cell
-        reads free by its ``clear_scans``-th look (``tests/test_dynamic.py``); held-out
-        AUC was higher than at 1.0 on Intel and FHW (``BENCHMARKS.md``, issue #16).
+        it free (and no return since). ``None`` (default): the free weight. Set it
+        above a low ``free_weight``: at ``free_weight`` 0.08 alone the cells of a moved
+        crate that still hold returns keep their cleared neighbours occupied for a look
+        beyond ``clear_scans``; with ``cleared_weight`` 0.5 every cell reads free by its
+        ``clear_scans``-th look again (``tests/test_dynamic.py``). That pair lifts
+        held-out AUC on the short real logs (Örebro +0.020) but costs FR079 0.006,
+        whose cleared voxels are mostly beside walls that pose jitter hits now and then
+        (``BENCHMARKS.md``, issue #16), so it is not the default.
     clear_margin : float or None
         With ``clear_scans`` > 0: metres before a return within which its beam's free
         segment does not count towards forgetting (it is still free evidence), as a beam
@@ -360,7 +362,7 @@ class OnlineConfig:
     inducing_spacing: float | None = None
     max_inducing_per_axis: int = 0
     clear_scans: int | None = None
-    cleared_weight: float = 0.5
+    cleared_weight: float | None = None
     clear_margin: float | None = None
 
     def __post_init__(self) -> None:
@@ -392,7 +394,8 @@ class OnlineConfig:
         _integer("OnlineConfig", "evidence_cap", self.evidence_cap, 1, 255)
         if self.free_weight is not None:
             _positive("OnlineConfig", "free_weight", self.free_weight)
-        _positive("OnlineConfig", "cleared_weight", self.cleared_weight)
+        if self.cleared_weight is not None:
+            _positive("OnlineConfig", "cleared_weight", self.cleared_weight)
         if self.inducing_spacing is not None:
             _positive("OnlineConfig", "inducing_spacing", self.inducing_spacing)
         _integer("OnlineConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 0, 16)
@@ -415,11 +418,12 @@ DEFAULT_CLEAR_SCANS = 5
 CLEAR_MARGIN_VOXELS = 5
 """The default ``clear_margin`` in voxels (see :class:`OnlineConfig`)."""
 
-FREE_WEIGHT_2D = 0.08
+FREE_WEIGHT_2D = 0.3
 """The lattice engine's default free weight in 2D. Held-out AUC (Hilbert maps' protocol, 5
-seeds) rose on all six small real logs from 0.3 to 0.08 and fell again below it (FHW,
-Belgioioso): a thin 2D wall is one voxel of returns beside many voxels of free space, and
-at 0.3 the free space pulls the wall's faces towards free (BENCHMARKS.md, issue #16)."""
+seeds) rises from 0.3 to 0.08 on the six short real logs (a thin 2D wall is one voxel of
+returns beside many voxels of free space; Örebro +0.020), but at 0.08 a moved object's
+cells clear a look late unless cleared voxels weigh more (``OnlineConfig.cleared_weight``),
+and that pair costs FR079 0.006 (BENCHMARKS.md, issue #16)."""
 
 FREE_WEIGHT_3D = 0.3
 """The default free weight in 3D: the simulated lidar room is best at 0.3 and loses
@@ -554,6 +558,16 @@ class MapConfig:
         if self.online.free_weight is not None:
             return self.online.free_weight
         return FREE_WEIGHT_2D if self.dim == 2 else FREE_WEIGHT_3D
+
+    @property
+    def cleared_weight(self) -> float:
+        """Weight of a cleared voxel's free evidence.
+
+        ``online.cleared_weight``, or the free weight (:attr:`free_weight`).
+        """
+        if self.online.cleared_weight is not None:
+            return self.online.cleared_weight
+        return self.free_weight
 
     @property
     def free_margin(self) -> float:

@@ -236,7 +236,9 @@ def fit_lattice_leaves(
     points = return_points(leaves, LeafGrid.from_config(config), tables, oc.evidence_cap)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    weights = free_weights(stored[:, 1], config.free_weight, oc.cleared_weight, config.clear_scans)
+    weights = free_weights(
+        stored[:, 1], config.free_weight, config.cleared_weight, config.clear_scans
+    )
     parts = [
         (hits[lo:hi], frees[lo:hi] * weights[lo:hi], points[lo:hi])
         for lo, hi in itertools.pairwise(bounds)
