@@ -299,7 +299,7 @@ class OnlineConfig:
         (its noise variance is ``σn² / free_weight``), so that free space, which a
         scan observes in far more voxels than it hits, does not swamp the returns.
         ``None`` (default): :data:`FREE_WEIGHT_2D` in 2D, :data:`FREE_WEIGHT_3D` in 3D
-        (:attr:`MapConfig.free_weight`). A cleared voxel weighs ``cleared_weight``.
+        (:attr:`MapConfig.free_weight`).
     inducing_spacing : float or None
         Lattice engine: largest spacing of the inducing lattice as a fraction of the
         length scale; the lattice gets ``ceil(halo box edge / (spacing × l))`` points
@@ -319,23 +319,12 @@ class OnlineConfig:
         object registers with its first return (:mod:`octolgp.observations`). ``0``:
         a static world, every return and free observation kept for good. ``None``
         (default): 5 with the lattice engine (:attr:`MapConfig.clear_scans`), 0 with
-        the exact one, which keeps the first evidence per voxel. In 0..254. With 5 a
+        the exact one, which keeps the first evidence per voxel. In 0..255. With 5 a
         moved crate clears in 6 scans and an opened door in 15.5 where OctoMap's default
         probabilities take 8 and 17 (``tools/bench_dynamic.py``), and held-out AUC is
         above the static map's on Intel (0.9862 against 0.9848) and FR079 (0.9559
         against 0.9501; 8 gives 0.9631 but clears a scan or two later than OctoMap;
         ``BENCHMARKS.md``).
-    cleared_weight : float or None
-        Lattice engine, with ``clear_scans`` > 0: the weight of a *cleared* voxel's
-        free evidence, one whose returns were forgotten after ``clear_scans`` scans saw
-        it free (and no return since). ``None`` (default): the free weight. Set it
-        above a low ``free_weight``: at ``free_weight`` 0.08 alone the cells of a moved
-        crate that still hold returns keep their cleared neighbours occupied for a look
-        beyond ``clear_scans``; with ``cleared_weight`` 0.5 every cell reads free by its
-        ``clear_scans``-th look again (``tests/test_dynamic.py``). That pair lifts
-        held-out AUC on the short real logs (Örebro +0.020) but costs FR079 0.006,
-        whose cleared voxels are mostly beside walls that pose jitter hits now and then
-        (``BENCHMARKS.md``, issue #16), so it is not the default.
     clear_margin : float or None
         With ``clear_scans`` > 0: metres before a return within which its beam's free
         segment does not count towards forgetting (it is still free evidence), as a beam
@@ -362,7 +351,6 @@ class OnlineConfig:
     inducing_spacing: float | None = None
     max_inducing_per_axis: int = 0
     clear_scans: int | None = None
-    cleared_weight: float | None = None
     clear_margin: float | None = None
 
     def __post_init__(self) -> None:
@@ -394,8 +382,6 @@ class OnlineConfig:
         _integer("OnlineConfig", "evidence_cap", self.evidence_cap, 1, 255)
         if self.free_weight is not None:
             _positive("OnlineConfig", "free_weight", self.free_weight)
-        if self.cleared_weight is not None:
-            _positive("OnlineConfig", "cleared_weight", self.cleared_weight)
         if self.inducing_spacing is not None:
             _positive("OnlineConfig", "inducing_spacing", self.inducing_spacing)
         _integer("OnlineConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 0, 16)
@@ -404,7 +390,7 @@ class OnlineConfig:
         if self.max_inducing_per_axis == 1:
             raise OctolgpError("OnlineConfig.max_inducing_per_axis must be 0 or >= 2, got 1")
         if self.clear_scans is not None:
-            _integer("OnlineConfig", "clear_scans", self.clear_scans, 0, 254)
+            _integer("OnlineConfig", "clear_scans", self.clear_scans, 0, 255)
             if self.clear_scans and self.engine != "lattice":
                 raise OctolgpError(
                     "OnlineConfig.clear_scans must be 0 or None with engine='exact' "
@@ -418,12 +404,13 @@ DEFAULT_CLEAR_SCANS = 5
 CLEAR_MARGIN_VOXELS = 5
 """The default ``clear_margin`` in voxels (see :class:`OnlineConfig`)."""
 
-FREE_WEIGHT_2D = 0.3
+FREE_WEIGHT_2D = 0.08
 """The lattice engine's default free weight in 2D. Held-out AUC (Hilbert maps' protocol, 5
-seeds) rises from 0.3 to 0.08 on the six short real logs (a thin 2D wall is one voxel of
-returns beside many voxels of free space; Örebro +0.020), but at 0.08 a moved object's
-cells clear a look late unless cleared voxels weigh more (``OnlineConfig.cleared_weight``),
-and that pair costs FR079 0.006 (BENCHMARKS.md, issue #16)."""
+seeds) rose from 0.3 to 0.08 on all six short real logs (Örebro +0.020, Belgioioso +0.007,
+Edmonton +0.006) and, with a held return's weight fading as free looks accumulate
+(:func:`octolgp.observations.return_fade`), on FR079 too: a thin 2D wall is one voxel of
+returns beside many voxels of free space, and at 0.3 the free space pulls its faces towards
+free (BENCHMARKS.md, issue #16)."""
 
 FREE_WEIGHT_3D = 0.3
 """The default free weight in 3D: the simulated lidar room is best at 0.3 and loses
@@ -558,16 +545,6 @@ class MapConfig:
         if self.online.free_weight is not None:
             return self.online.free_weight
         return FREE_WEIGHT_2D if self.dim == 2 else FREE_WEIGHT_3D
-
-    @property
-    def cleared_weight(self) -> float:
-        """Weight of a cleared voxel's free evidence.
-
-        ``online.cleared_weight``, or the free weight (:attr:`free_weight`).
-        """
-        if self.online.cleared_weight is not None:
-            return self.online.cleared_weight
-        return self.free_weight
 
     @property
     def free_margin(self) -> float:

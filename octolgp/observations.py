@@ -16,11 +16,8 @@ order: this is what makes inserting scans one by one equal to inserting them at 
 **Newer evidence wins** (``OnlineConfig.clear_scans`` = K > 0, the default): a voxel's
 state is its return count ``h`` and its free count ``f`` since its last return. A scan
 with a return in the voxel sets ``h += 1, f = 0``; a scan that sees it free sets
-``f += 1`` and, once ``f >= K``, forgets its returns (``h = 0``) and is marked *cleared*
-(stored ``f = K + 1`` until its next return): the leaf GP weighs a cleared voxel's free
-evidence as ``online.cleared_weight``, above the free weight of a voxel that never held a
-return, so that a moved object's cells read free once they are cleared even while their
-neighbours still hold returns (:func:`free_weights`). The observations of a
+``f += 1`` and, once ``f >= K``, forgets its returns (``h = 0``); until then the leaf
+GP weighs its return by ``1 − f / K`` (:func:`return_fade`). The observations of a
 run of scans are summarised per voxel (:class:`VoxelObservations`' ``head_frees``,
 ``tail_frees``, ``restart_*``) so that :func:`advance` applies the whole run to a state
 exactly as the scans one by one would; summaries of consecutive runs compose
@@ -438,8 +435,7 @@ class VoxelState:
     Attributes
     ----------
     hits, frees : ndarray of int64, shape (p,)
-        The new counts (saturated; with newer evidence winning ``frees`` is ``K + 1``
-        for a cleared voxel).
+        The new counts (saturated).
     position : ndarray of shape (p, d)
         The return to keep for the voxel where ``replace``; NaN elsewhere.
     replace : ndarray of bool, shape (p,)
@@ -475,8 +471,7 @@ def advance(
         Each copy's voxel in ``obs``.
     evidence_cap : int
         Counts saturate at this; with the newer-evidence rule the free count
-        saturates at K instead (it counts towards forgetting), or is ``K + 1`` once
-        the voxel's returns were forgotten.
+        saturates at K instead (it counts towards forgetting).
 
     Returns
     -------
@@ -501,8 +496,7 @@ def advance(
     f = np.select([seen, h0 > 0], [obs.tail_frees[at], f0 + obs.strong_frees[at]], f0 + n_f)
     cleared = on & (f >= k)
     h = np.where(cleared, 0, np.minimum(h, evidence_cap))
-    # cleared now, or before and no return since: marked K + 1
-    f = np.where(cleared | ((h0 == 0) & (f0 > k) & ~seen), k + 1, np.minimum(f, k))
+    f = np.minimum(f, k)
     replace = (restart | first_on) & ~cleared
     position = np.select(
         [(restart & replace)[:, None], (first_on & replace)[:, None]],
@@ -539,31 +533,28 @@ def effective_counts(
     return h, f
 
 
-def free_weights(
-    frees: NDArray[np.integer],
-    free_weight: float,
-    cleared_weight: float,
-    clear_scans: int,
-) -> np.ndarray:
-    """The weight of each voxel's free evidence in the leaf GP.
+def return_fade(frees: NDArray[np.integer], clear_scans: int) -> np.ndarray:
+    """The weight factor of a held return: ``1 − f / K`` after ``f`` strong free looks.
+
+    With newer evidence winning (``clear_scans`` = K > 0) a voxel holding a return
+    counts the scans that have seen it free since (``f`` < K; at K the return is
+    forgotten). Its return's weight in the leaf GP fades linearly with them, so a voxel
+    that pose jitter hits now and then but mostly sees free reads less occupied than
+    one that every look hits, and a moved object's cells on their way to being
+    forgotten pull their already cleared neighbours less towards occupied.
 
     Parameters
     ----------
     frees : ndarray of int
-        Stored free counts (:func:`advance`).
-    free_weight : float
-        Weight of a free observation against a return (``MapConfig.free_weight``).
-    cleared_weight : float
-        Weight of a cleared voxel's free evidence (stored ``frees`` above
-        ``clear_scans``): one whose returns were forgotten after ``clear_scans`` scans
-        saw it free.
+        Stored free counts of voxels holding a return (:func:`advance`).
     clear_scans : int
-        K of the newer-evidence rule; 0: static, no voxel is cleared.
+        K; 0 (static): no fading, all ones.
 
     Returns
     -------
-    ndarray of float64, same shape
+    ndarray of float64, same shape, in (0, 1]
     """
     if not clear_scans:
-        return np.full(frees.shape, float(free_weight))
-    return np.where(frees > clear_scans, float(cleared_weight), float(free_weight))
+        return np.ones(frees.shape)
+    out: np.ndarray = 1.0 - np.minimum(frees, clear_scans - 1) / clear_scans
+    return out

@@ -248,7 +248,7 @@ HitPoints = list[tuple[FloatArray, FloatArray]]
 def lattice_posterior(
     tables: LatticeTables,
     hits: NDArray[np.integer],
-    frees: NDArray[np.integer] | FloatArray,
+    frees: NDArray[np.integer],
     free_weight: float = 1.0,
     hit_points: HitPoints | None = None,
 ) -> tuple[FloatArray, FloatArray]:
@@ -259,7 +259,7 @@ def lattice_posterior(
     tables : LatticeTables
     hits, frees : ndarray of int, shape (L, H)
         Per leaf and halo-box voxel (x fastest), how often the voxel was observed
-        with a return and free; ``frees`` may be weighted (float).
+        with a return and free.
     free_weight : float
         Precision multiplier of a free observation.
     hit_points : list of (ndarray, ndarray), optional
@@ -293,7 +293,7 @@ def lattice_posterior(
 def _posterior_chunk(
     tables: LatticeTables,
     hits: NDArray[np.integer],
-    frees: NDArray[np.integer] | FloatArray,
+    frees: NDArray[np.integer],
     free_weight: float,
     hit_points: HitPoints | None,
 ) -> tuple[FloatArray, FloatArray]:

@@ -36,7 +36,7 @@ from octolgp.gp.regression import fit_predict
 from octolgp.mapping.cache import KernelCache, leaf_blocks
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
-from octolgp.observations import effective_counts, free_weights
+from octolgp.observations import effective_counts, return_fade
 from octolgp.partition import partition
 from octolgp.scan import FloatArray
 from octolgp.training import TrainingData
@@ -233,19 +233,15 @@ def fit_lattice_leaves(
     n_halo = tables.phi.shape[0]
     if stored.shape[2] != n_halo:
         raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
-    points = return_points(leaves, LeafGrid.from_config(config), tables, oc.evidence_cap)
+    points = return_points(
+        leaves, LeafGrid.from_config(config), tables, oc.evidence_cap, config.clear_scans
+    )
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    weights = free_weights(
-        stored[:, 1], config.free_weight, config.cleared_weight, config.clear_scans
-    )
-    parts = [
-        (hits[lo:hi], frees[lo:hi] * weights[lo:hi], points[lo:hi])
-        for lo, hi in itertools.pairwise(bounds)
-    ]
+    parts = [(hits[lo:hi], frees[lo:hi], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
 
     def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
-        return lattice_posterior(tables, part[0], part[1], 1.0, part[2])
+        return lattice_posterior(tables, part[0], part[1], config.free_weight, part[2])
 
     results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
     mean = np.concatenate([r[0] for r in results])
@@ -270,14 +266,19 @@ def fit_lattice_leaves(
 
 
 def return_points(
-    leaves: list[Leaf], grid: LeafGrid, tables: LatticeTables, evidence_cap: int
+    leaves: list[Leaf],
+    grid: LeafGrid,
+    tables: LatticeTables,
+    evidence_cap: int,
+    clear_scans: int = 0,
 ) -> HitPoints:
     """Each lattice leaf's returns at their measured positions, with their weights.
 
     A voxel seen occupied contributes one point of weight ``min(counts[0, v],
-    evidence_cap)``: the return the leaf kept for it (``Leaf.hits``), or the voxel
-    centre if it has none (leaves written before positions were kept). Positions are
-    relative to the leaf's lower corner, metres.
+    evidence_cap)`` times :func:`~octolgp.observations.return_fade` of its free count
+    (with ``clear_scans`` > 0): the return the leaf kept for it (``Leaf.hits``), or the
+    voxel centre if it has none (leaves written before positions were kept). Positions
+    are relative to the leaf's lower corner, metres.
     """
     box, halo, d = tables.geometry.box, grid.halo_voxels, grid.dim
     n_kept = np.array([leaf.hit_keys.size for leaf in leaves])
@@ -290,8 +291,9 @@ def return_points(
         keys = np.concatenate([leaf.hit_keys for leaf in leaves])
         local = unpack_keys(keys, d) - (index[owner] * grid.side - halo)
         flat = local @ (box ** np.arange(d, dtype=np.int64))
-        counts = np.concatenate([leaf.counts[0] for leaf in leaves]).reshape(len(leaves), -1)
-        weights = np.minimum(counts[owner, flat], evidence_cap).astype(np.float64)
+        counts = np.stack([leaf.counts for leaf in leaves])
+        weights = np.minimum(counts[owner, 0, flat], evidence_cap).astype(np.float64)
+        weights *= return_fade(counts[owner, 1, flat], clear_scans)
         lo, _ = grid.box(index)
         pos = np.concatenate([leaf.hits for leaf in leaves]) - lo[owner]
         cuts = np.cumsum(n_kept)[:-1]
@@ -300,6 +302,7 @@ def return_points(
     for leaf in leaves:  # leaves from files without positions: returns at voxel centres
         occupied = np.flatnonzero(leaf.counts[0])
         weights = np.minimum(leaf.counts[0, occupied], evidence_cap).astype(np.float64)
+        weights *= return_fade(leaf.counts[1, occupied], clear_scans)
         out.append((centres[occupied], weights))
     return out
 
