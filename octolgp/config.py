@@ -314,7 +314,9 @@ class OnlineConfig:
     clear_scans : int or None
         Lattice engine: how fast the map forgets (newer evidence wins). A voxel's
         returns are forgotten once this many scans have seen it free since its last
-        return, and a return clears the voxel's free count, so a moved object's voxels
+        return (until then each such scan takes ``1/clear_scans`` off its return's
+        weight, :func:`~octolgp.observations.return_fade`), and a return clears the
+        voxel's free count, so a moved object's voxels
         read free after the robot has looked through them this many times and a new
         object registers with its first return (:mod:`octolgp.observations`). ``0``:
         a static world, every return and free observation kept for good. ``None``
