@@ -595,7 +595,7 @@ def test_coarser_free_voxels_keep_fewer_pieces() -> None:
 def test_free_weight_defaults_per_dimension_and_round_trips() -> None:
     from octolgp.config import FREE_WEIGHT_2D, FREE_WEIGHT_3D
 
-    assert MapConfig(dim=2).free_weight == FREE_WEIGHT_2D == 0.08
+    assert MapConfig(dim=2).free_weight == FREE_WEIGHT_2D == 0.3
     assert MapConfig(dim=3).free_weight == FREE_WEIGHT_3D == 0.3
     given = MapConfig(dim=2, online=OnlineConfig(free_weight=0.5))
     assert given.free_weight == 0.5
@@ -611,10 +611,10 @@ def test_free_weight_changes_the_lattice_map() -> None:
     scan = Scan(np.zeros(2), ends)
     probe = np.array([[1.5, 0.0]])
     probs = []
-    for weight in (None, 0.08, 1.0):
+    for weight in (None, 0.3, 1.0):
         cfg = MapConfig(dim=2, hyperparameters=hp, online=OnlineConfig(free_weight=weight))
         with OnlineMap(cfg) as m:
             m.insert_scan(scan)
             probs.append(float(m.occupancy(probe)[0]))
-    assert probs[0] == probs[1]  # None is the 2D default, 0.08
+    assert probs[0] == probs[1]  # None is the 2D default, 0.3
     assert probs[2] < probs[1] < 0.5
