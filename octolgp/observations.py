@@ -16,8 +16,7 @@ order: this is what makes inserting scans one by one equal to inserting them at 
 **Newer evidence wins** (``OnlineConfig.clear_scans`` = K > 0, the default): a voxel's
 state is its return count ``h`` and its free count ``f`` since its last return. A scan
 with a return in the voxel sets ``h += 1, f = 0``; a scan that sees it free sets
-``f += 1`` and, once ``f >= K``, forgets its returns (``h = 0``); until then the leaf
-GP weighs its return by ``1 − f / K`` (:func:`return_fade`). The observations of a
+``f += 1`` and, once ``f >= K``, forgets its returns (``h = 0``). The observations of a
 run of scans are summarised per voxel (:class:`VoxelObservations`' ``head_frees``,
 ``tail_frees``, ``restart_*``) so that :func:`advance` applies the whole run to a state
 exactly as the scans one by one would; summaries of consecutive runs compose
@@ -510,11 +509,18 @@ def advance(
 def effective_counts(
     hits: NDArray[np.integer], frees: NDArray[np.integer], evidence_cap: int, clear_scans: int
 ) -> tuple[NDArray[np.integer], NDArray[np.integer]]:
-    """The counts a leaf GP sees, each up to ``evidence_cap``.
+    """The counts a leaf GP sees: returns and free looks, saturated.
 
-    With newer evidence winning (``clear_scans`` > 0) a voxel holding a return is
-    occupied only: its later frees count only towards forgetting the return, so a
-    wall voxel that grazing beams see free now and then does not flip its leaf.
+    Returns count up to ``evidence_cap``; free looks up to ``evidence_cap`` in a static
+    world and up to ``clear_scans`` with newer evidence winning.
+
+    With newer evidence winning (``clear_scans`` = K > 0) a voxel holding a return is
+    occupied only: its later frees count only towards forgetting the return, so a wall
+    voxel that grazing beams see free now and then does not flip its leaf. A voxel
+    without one counts each scan that saw it free, up to K (the count the rule keeps
+    anyway), each weighing ``online.free_weight``: a voxel seen free once, beside a wall,
+    weighs little against the wall's returns, one seen free scan after scan (an opened
+    doorway) K times as much.
 
     Parameters
     ----------
@@ -527,34 +533,7 @@ def effective_counts(
     hits, frees : ndarray of int
     """
     h = np.minimum(hits, evidence_cap)
-    f = np.minimum(frees, evidence_cap)
+    f = np.minimum(frees, max(evidence_cap, clear_scans))
     if clear_scans:
         f = np.where(h > 0, 0, f).astype(f.dtype)
     return h, f
-
-
-def return_fade(frees: NDArray[np.integer], clear_scans: int) -> np.ndarray:
-    """The weight factor of a held return: ``1 − f / K`` after ``f`` strong free looks.
-
-    With newer evidence winning (``clear_scans`` = K > 0) a voxel holding a return
-    counts the scans that have seen it free since (``f`` < K; at K the return is
-    forgotten). Its return's weight in the leaf GP fades linearly with them, so a voxel
-    that pose jitter hits now and then but mostly sees free reads less occupied than
-    one that every look hits, and a moved object's cells on their way to being
-    forgotten pull their already cleared neighbours less towards occupied.
-
-    Parameters
-    ----------
-    frees : ndarray of int
-        Stored free counts of voxels holding a return (:func:`advance`).
-    clear_scans : int
-        K; 0 (static): no fading, all ones.
-
-    Returns
-    -------
-    ndarray of float64, same shape, in (0, 1]
-    """
-    if not clear_scans:
-        return np.ones(frees.shape)
-    out: np.ndarray = 1.0 - np.minimum(frees, clear_scans - 1) / clear_scans
-    return out

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 import pytest
 
 from octolgp import MapConfig, Scan
-from octolgp.observations import advance, merge_observations, observe, return_fade
+from octolgp.observations import advance, merge_observations, observe
 
 
 def _brute_force(
@@ -247,31 +245,18 @@ def test_frees_near_a_return_are_weak() -> None:
     np.testing.assert_array_equal(static.frees, obs.frees)  # weak or not, a free is a free
 
 
-def test_a_held_return_fades_with_the_free_looks_since_it() -> None:
-    """``return_fade``: 1 − f/K while the voxel holds its return; the map's P there falls
-    monotonically with each strong free look until the return is forgotten."""
-    from octolgp import Hyperparameters, OnlineMap
-    from octolgp.config import OnlineConfig
+def test_effective_counts_count_free_looks_up_to_clear_scans() -> None:
+    """Static: both counts up to evidence_cap. Newer evidence winning: a voxel holding a
+    return is occupied only; one without counts its free looks up to clear_scans."""
+    from octolgp.observations import effective_counts
 
-    np.testing.assert_allclose(return_fade(np.arange(5), 5), [1.0, 0.8, 0.6, 0.4, 0.2])
-    np.testing.assert_array_equal(return_fade(np.arange(5), 0), 1.0)  # static: no fading
-    k = 4
-    hp = Hyperparameters(0.3, 1.0, 0.05, alpha=3.0, beta=0.0)
-    config = MapConfig(
-        dim=2, resolution=0.1, hyperparameters=hp, online=OnlineConfig(clear_scans=k)
-    )
-    # a fan of returns at 1.05 m, then beams reaching past it to 3 m (strong frees there)
-    angles = np.linspace(-0.3, 0.3, 31)
-    ray = np.c_[np.cos(angles), np.sin(angles)]
-    wall = Scan(np.zeros(2), 1.05 * ray, max_range=4.0)
-    beyond = Scan(np.zeros(2), 3.0 * ray, max_range=4.0)
-    probe = np.array([[1.05, 0.0]])
-    with OnlineMap(config) as m:
-        m.insert_scan(wall)
-        probs = [float(m.occupancy(probe)[0])]
-        for _ in range(k):
-            m.insert_scan(beyond)
-            probs.append(float(m.occupancy(probe)[0]))
-    assert probs[0] > 0.5
-    assert all(b < a for a, b in itertools.pairwise(probs))  # each look lowers P
-    assert probs[-1] < 0.5  # forgotten at the K-th look
+    hits = np.array([0, 0, 0, 0, 1, 2])
+    frees = np.array([0, 1, 3, 5, 2, 0])
+    h, f = effective_counts(hits, frees, 1, 0)
+    np.testing.assert_array_equal(h, [0, 0, 0, 0, 1, 1])
+    np.testing.assert_array_equal(f, [0, 1, 1, 1, 1, 0])
+    h, f = effective_counts(hits, frees, 1, 4)
+    np.testing.assert_array_equal(h, [0, 0, 0, 0, 1, 1])
+    np.testing.assert_array_equal(f, [0, 1, 3, 4, 0, 0])
+    h, f = effective_counts(hits, frees, 8, 4)  # a larger cap wins
+    np.testing.assert_array_equal(f, [0, 1, 3, 5, 0, 0])

@@ -209,17 +209,21 @@ def test_revisiting_adds_nothing_and_memory_saturates(engine: str) -> None:
 
 
 def test_a_static_revisit_settles_when_newer_evidence_wins() -> None:
-    """The default rule on a static scene: a revisit refits nothing, memory stays put.
+    """The default rule on a static scene: once its voxels have been seen free
+    ``clear_scans`` times, a revisit refits nothing and memory stays put.
 
     No voxel of this room is seen free ``clear_scans`` times between two of its returns,
     so no return is forgotten; a wall voxel that a grazing beam sees free keeps reading
-    occupied (its frees only count towards forgetting), and free counts that climb
-    towards ``clear_scans`` change no value.
+    occupied (its frees only count towards forgetting). A free voxel's evidence grows
+    with its first ``clear_scans`` looks (the first revisits refit), then saturates.
     """
     scans = [room_scan((x, 0.5 * x)) for x in np.linspace(-2, 2, 5)]
     m = OnlineMap(config2d())
-    assert m.config.clear_scans > 0
+    k = m.config.clear_scans
+    assert k > 0
     m.insert_scans(scans)
+    refits = [sum(u.refit_leaves for u in m.insert_scans(scans)) for _ in range(k - 1)]
+    assert refits[0] > 0  # free evidence still growing
     first = snapshot(m)
     mem = m.memory_bytes()
     for _ in range(2):
@@ -592,14 +596,10 @@ def test_coarser_free_voxels_keep_fewer_pieces() -> None:
         OnlineConfig(free_voxels=0)
 
 
-def test_free_weight_defaults_per_dimension_and_round_trips() -> None:
-    from octolgp.config import FREE_WEIGHT_2D, FREE_WEIGHT_3D
-
-    assert MapConfig(dim=2).free_weight == FREE_WEIGHT_2D == 0.3
-    assert MapConfig(dim=3).free_weight == FREE_WEIGHT_3D == 0.3
+def test_free_weight_default_and_round_trip() -> None:
+    assert OnlineConfig().free_weight == 0.06
     given = MapConfig(dim=2, online=OnlineConfig(free_weight=0.5))
-    assert given.free_weight == 0.5
-    for config in (MapConfig(dim=2), given):
+    for config in (MapConfig(dim=2), MapConfig(dim=3), given):
         assert MapConfig.from_dict(config.to_dict()) == config
 
 
@@ -611,10 +611,33 @@ def test_free_weight_changes_the_lattice_map() -> None:
     scan = Scan(np.zeros(2), ends)
     probe = np.array([[1.5, 0.0]])
     probs = []
-    for weight in (None, 0.3, 1.0):
+    for weight in (0.06, 0.3, 1.0):
         cfg = MapConfig(dim=2, hyperparameters=hp, online=OnlineConfig(free_weight=weight))
         with OnlineMap(cfg) as m:
             m.insert_scan(scan)
             probs.append(float(m.occupancy(probe)[0]))
-    assert probs[0] == probs[1]  # None is the 2D default, 0.3
-    assert probs[2] < probs[1] < 0.5
+    assert probs[2] < probs[1] < probs[0] < 0.5
+
+
+def test_free_looks_count_up_to_clear_scans() -> None:
+    """With newer evidence winning, each scan that sees a voxel free adds to its free
+    evidence until clear_scans scans have: P falls with every look up to K, then stays."""
+    hp = Hyperparameters(0.5, 1.0, 0.05, alpha=3.0, beta=0.0)
+    angles = np.linspace(-0.5, 0.5, 41)
+    scan = Scan(np.zeros(2), np.c_[np.cos(angles), np.sin(angles)] * 3.0)
+    probe = np.array([[1.5, 0.0]])
+    k = 4
+    cfg = MapConfig(dim=2, hyperparameters=hp, online=OnlineConfig(clear_scans=k))
+    probs = []
+    with OnlineMap(cfg) as m:
+        for _ in range(k + 2):
+            m.insert_scan(scan)
+            probs.append(float(m.occupancy(probe)[0]))
+    assert all(b < a for a, b in itertools.pairwise(probs[:k]))
+    assert probs[k - 1] == probs[k] == probs[k + 1]
+    static = MapConfig(dim=2, hyperparameters=hp, online=OnlineConfig(clear_scans=0))
+    with OnlineMap(static) as m:  # static: one free count per voxel (evidence_cap 1)
+        m.insert_scan(scan)
+        once = float(m.occupancy(probe)[0])
+        m.insert_scan(scan)
+        assert float(m.occupancy(probe)[0]) == once

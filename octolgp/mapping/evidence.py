@@ -219,9 +219,7 @@ def gather_observations(
     eh1, ef1 = effective_counts(state.hits, state.frees, cap, obs.clear_scans)
     d_h, d_f = eh1 != eh0, ef1 != ef0
     moves = state.replace | state.drop
-    # a held return's weight fades with the free looks since it (return_fade)
-    fades = (state.hits > 0) & (state.frees != before_f) if obs.clear_scans else moves
-    effective = d_h | d_f | moves | fades
+    effective = d_h | d_f | moves
     stored = effective | (state.hits != before_h) | (state.frees != before_f)
     # a leaf keeps one return per voxel it sees occupied; the pairs whose return is
     # new or forgotten, grouped by leaf

@@ -36,7 +36,7 @@ from octolgp.gp.regression import fit_predict
 from octolgp.mapping.cache import KernelCache, leaf_blocks
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
-from octolgp.observations import effective_counts, return_fade
+from octolgp.observations import effective_counts
 from octolgp.partition import partition
 from octolgp.scan import FloatArray
 from octolgp.training import TrainingData
@@ -233,15 +233,13 @@ def fit_lattice_leaves(
     n_halo = tables.phi.shape[0]
     if stored.shape[2] != n_halo:
         raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
-    points = return_points(
-        leaves, LeafGrid.from_config(config), tables, oc.evidence_cap, config.clear_scans
-    )
+    points = return_points(leaves, LeafGrid.from_config(config), tables, oc.evidence_cap)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
     parts = [(hits[lo:hi], frees[lo:hi], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
 
     def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
-        return lattice_posterior(tables, part[0], part[1], config.free_weight, part[2])
+        return lattice_posterior(tables, part[0], part[1], oc.free_weight, part[2])
 
     results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
     mean = np.concatenate([r[0] for r in results])
@@ -266,19 +264,14 @@ def fit_lattice_leaves(
 
 
 def return_points(
-    leaves: list[Leaf],
-    grid: LeafGrid,
-    tables: LatticeTables,
-    evidence_cap: int,
-    clear_scans: int = 0,
+    leaves: list[Leaf], grid: LeafGrid, tables: LatticeTables, evidence_cap: int
 ) -> HitPoints:
     """Each lattice leaf's returns at their measured positions, with their weights.
 
     A voxel seen occupied contributes one point of weight ``min(counts[0, v],
-    evidence_cap)`` times :func:`~octolgp.observations.return_fade` of its free count
-    (with ``clear_scans`` > 0): the return the leaf kept for it (``Leaf.hits``), or the
-    voxel centre if it has none (leaves written before positions were kept). Positions
-    are relative to the leaf's lower corner, metres.
+    evidence_cap)``: the return the leaf kept for it (``Leaf.hits``), or the voxel
+    centre if it has none (leaves written before positions were kept). Positions are
+    relative to the leaf's lower corner, metres.
     """
     box, halo, d = tables.geometry.box, grid.halo_voxels, grid.dim
     n_kept = np.array([leaf.hit_keys.size for leaf in leaves])
@@ -291,9 +284,8 @@ def return_points(
         keys = np.concatenate([leaf.hit_keys for leaf in leaves])
         local = unpack_keys(keys, d) - (index[owner] * grid.side - halo)
         flat = local @ (box ** np.arange(d, dtype=np.int64))
-        counts = np.stack([leaf.counts for leaf in leaves])
-        weights = np.minimum(counts[owner, 0, flat], evidence_cap).astype(np.float64)
-        weights *= return_fade(counts[owner, 1, flat], clear_scans)
+        counts = np.concatenate([leaf.counts[0] for leaf in leaves]).reshape(len(leaves), -1)
+        weights = np.minimum(counts[owner, flat], evidence_cap).astype(np.float64)
         lo, _ = grid.box(index)
         pos = np.concatenate([leaf.hits for leaf in leaves]) - lo[owner]
         cuts = np.cumsum(n_kept)[:-1]
@@ -302,7 +294,6 @@ def return_points(
     for leaf in leaves:  # leaves from files without positions: returns at voxel centres
         occupied = np.flatnonzero(leaf.counts[0])
         weights = np.minimum(leaf.counts[0, occupied], evidence_cap).astype(np.float64)
-        weights *= return_fade(leaf.counts[1, occupied], clear_scans)
         out.append((centres[occupied], weights))
     return out
 
