@@ -329,9 +329,9 @@ class OnlineConfig:
         the exact one, which keeps the first evidence per voxel. In 0..255. With 5 a
         moved crate clears in 6 scans and an opened door in 15.5 where OctoMap's default
         probabilities take 8 and 17 (``tools/bench_dynamic.py``), and held-out AUC is
-        above the static map's on Intel (0.9862 against 0.9848) and FR079 (0.9559
-        against 0.9501; 8 gives 0.9631 but clears a scan or two later than OctoMap;
-        ``BENCHMARKS.md``).
+        above the static map's on Intel (0.9880 against 0.9842 at the free weight of
+        issue #16; 0.9862 against 0.9848 before) and FR079 (0.9559 against 0.9501; 8
+        gives 0.9631 but clears a scan or two later than OctoMap; ``BENCHMARKS.md``).
     clear_margin : float or None
         With ``clear_scans`` > 0: metres before a return within which its beam's free
         segment does not count towards forgetting (it is still free evidence), as a beam
