@@ -116,7 +116,7 @@ def _record(path: Path, scans: list[Scan], dim: int, **options: Any) -> tuple[Re
     rec.save(path)
     sink = Recorder(rec, **options)
     m = OnlineMap(MapConfig(dim=dim, resolution=0.2, hyperparameters=HP), sink=sink)
-    m.insert_scans(scans + scans[:2])  # the repeats refit nothing
+    m.insert_scans(scans + scans[:2])  # repeats: refit only while free looks grow
     rec.flush()
     rec.disconnect()
     return sink, m
@@ -189,9 +189,13 @@ def test_2d_tiles_show_a_correction(tmp_path: Path) -> None:
 
 
 def test_2d_tiles_are_logged_only_when_a_scan_changed_them(tmp_path: Path) -> None:
+    """Each scan comes clear_scans + 1 times (a voxel's free looks count up to
+    clear_scans), then the first two once more: those last repeats refit nothing."""
     rrd, tile, res = tmp_path / "m.rrd", 32, 0.2
-    sink, m = _record(rrd, _scans(2), 2, tile=tile)
+    k = MapConfig(dim=2).clear_scans
+    sink, m = _record(rrd, _scans(2) * (k + 1), 2, tile=tile)
     m.close()
+    n = 4 * (k + 1) + 2
     logged: dict[int, set[str]] = collections.defaultdict(set)
     for entity, scan, _ in _column(rrd, "/map/tiles/", "EncodedImage:blob"):
         assert scan is not None
@@ -202,21 +206,21 @@ def test_2d_tiles_are_logged_only_when_a_scan_changed_them(tmp_path: Path) -> No
         cells = [np.rint(lo / res).astype(np.int64) // tile for lo in corners]
         touched = {f"/map/tiles/{tx}_{ty}" for tx, ty in cells}
         assert logged.get(scan, set()) <= touched  # a tile no refit leaf lies in: not logged
-    assert sink.updates == 6
-    assert not logged.get(5)  # the repeats refit nothing
-    assert not logged.get(6)
+    assert sink.updates == n
+    assert not logged.get(n - 1)  # the repeats refit nothing
+    assert not logged.get(n)
     assert sum(len(t) for t in logged.values()) < sink.updates * n_tiles
     rows = _rows(rrd)
     assert not any(e.startswith("/world/map/leaves") for e in rows)  # no entity per leaf
-    assert rows["/metrics/insert_seconds"] == 6
-    assert rows["/world/sensor/points"] == 6
-    assert rows["/map/scan"] == 6 + 1  # positions per scan, the style once (static)
-    assert rows["/map/rays"] == 6
+    assert rows["/metrics/insert_seconds"] == n
+    assert rows["/world/sensor/points"] == n
+    assert rows["/map/scan"] == n + 1  # positions per scan, the style once (static)
+    assert rows["/map/rays"] == n
     assert sum(v for e, v in rows.items() if e.startswith("/map/variance/")) > 0
     # the scans come back bit for bit
     back = list(read_rrd(rrd))
-    scans = _scans(2)
-    assert len(back) == 6
+    scans = _scans(2) * (k + 1)
+    assert len(back) == n
     for a, b in zip(scans + scans[:2], back, strict=True):
         assert np.array_equal(a.points, b.points)
         assert np.array_equal(a.origin, b.origin)
