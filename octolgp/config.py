@@ -292,8 +292,10 @@ class OnlineConfig:
         against; 10-100x slower in 3D (``BENCHMARKS.md``).
     evidence_cap : int
         Lattice engine: scans counted per voxel and class (occupied, free). ``1``
-        keeps whether a voxel was ever seen occupied and ever seen free, so a
-        static revisit changes nothing and costs nothing. Default 1.
+        keeps whether a voxel was ever seen occupied and, in a static map
+        (``clear_scans`` 0), ever seen free, so a static revisit changes nothing and
+        costs nothing; with newer evidence winning free looks count up to
+        ``clear_scans`` instead (see ``free_weight``). Default 1.
     free_weight : float
         Lattice engine: a free observation counts this much of a return (its noise
         variance is ``σn² / free_weight``), so that free space, which a scan observes in
@@ -304,7 +306,7 @@ class OnlineConfig:
         held-out AUC (Hilbert maps' protocol, 5 seeds) above the previous rule (0.3, one
         free count per voxel) on all six short real 2D logs (Belgioioso +0.016, Örebro
         +0.022) and level on FR079, an opened door and a moved crate clearing as before
-        (``tools/bench_dynamic.py``), and the simulated 3D lidar room at 0.9965 (0.9960);
+        (``tools/bench_dynamic.py``), and the simulated 3D lidar room at 0.9961 (0.9960);
         one free count per voxel at 0.08 gained AUC too but kept an opened door's cells
         next to its frame occupied for good (``BENCHMARKS.md``, issue #16).
     inducing_spacing : float or None

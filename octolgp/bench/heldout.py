@@ -339,10 +339,11 @@ def seen_free_fraction(
 
     Counts the points with no training return within ``radius`` metres whose voxel a
     training beam's free segment crossed. For the occupied test points: held-out returns
-    where the training scans looked through and saw nothing, so the scans contradict each other there (a pose error between the
-    two stretches of the path, something that moved, glass); the rest of the novel points
-    (:func:`novel_fraction`) lie where the training scans never looked. Free segments as the
-    map's (:func:`octolgp.observations.observe`, static counts).
+    where the training scans looked through and saw nothing, so the scans contradict each
+    other there (a pose error between the two stretches of the path, something that
+    moved, glass); the rest of the novel points (:func:`novel_fraction`) lie where the
+    training scans never looked. Free segments as the map's
+    (:func:`octolgp.observations.observe`, static counts).
 
     Parameters
     ----------
@@ -360,7 +361,7 @@ def seen_free_fraction(
     float
         In [0, :func:`novel_fraction`]; 0 for no points.
     """
-    from octolgp.geometry.keys import pack_keys
+    from octolgp.geometry.keys import coord_to_key, pack_keys
     from octolgp.observations import observe
 
     pts = as_points(points, "seen_free_fraction: points")
@@ -371,8 +372,7 @@ def seen_free_fraction(
     static = dataclasses.replace(config, online=dataclasses.replace(config.online, clear_scans=0))
     obs = observe(scans, static)
     seen_free = np.sort(pack_keys(obs.keys[obs.frees > 0]))
-    offset = 1 << (config.tree_depth - 1)
-    packed = pack_keys(np.floor(pts[novel] / config.resolution).astype(np.int64) + offset)
+    packed = pack_keys(coord_to_key(pts[novel], config.resolution, config.tree_depth))
     if seen_free.size == 0:
         return 0.0
     at = np.minimum(np.searchsorted(seen_free, packed), seen_free.size - 1)
