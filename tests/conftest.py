@@ -1,4 +1,4 @@
-"""Shared test set-up: Hypothesis profiles, killing a child process mid-mission, CLI errors.
+"""Shared test set-up: Hypothesis profiles, the shared data, killing a child mid-mission, CLI errors.
 
 ``ci`` (the default) is deterministic and bounded; the fuzz tests in
 ``test_fuzz.py`` cap themselves lower still under it (``FUZZ_EXAMPLES``) so the
@@ -7,6 +7,10 @@ whole file runs in well under a minute. ``fuzz`` (``make fuzz``, or
 
 ``cli_exit_2`` runs ``python -m octolgp.cli`` in a real process and checks the
 contract for bad input: exit status 2 and one ``octolgp: error:`` line, no traceback.
+
+``SHARED_DATA`` is the shared data set, ``../shared/data`` beside the repository (not
+part of a clone); the ``shared_data`` fixture gives a path in it, or skips the test
+when that path is absent.
 """
 
 import os
@@ -33,6 +37,23 @@ settings.register_profile(
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
 )
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
+
+SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+"""The shared data set: ``shared/data`` in the repository's parent folder."""
+
+
+def _shared_data(*parts: str) -> Path:
+    """``SHARED_DATA / parts``, or skip the test when it is absent."""
+    path = SHARED_DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"{path} is absent (the shared data set ../shared/data is not in a clone)")
+    return path
+
+
+@pytest.fixture
+def shared_data() -> Callable[..., Path]:
+    """A path in the shared data set, ``shared_data("fr079", name)``; skips when absent."""
+    return _shared_data
 
 
 def _sigkill_after(child: subprocess.Popen[str], count: int) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import gzip
 import logging
 import shutil
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -28,7 +28,6 @@ from octolgp.sim.scenes import simulate_paper2d
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"
-FR079 = Path("/work/shared/data/fr079/freiburg-079-corrected.log.gz")
 FIRST20 = ROOT / "tests" / "data" / "intel_first20.log"
 
 
@@ -356,9 +355,8 @@ def test_carmen_corrupt_gzip_tail_raises_while_iterating(tmp_path: Path) -> None
         list(load_scans(path))
 
 
-@pytest.mark.skipif(not FR079.is_file(), reason="FR079 log not available")
-def test_fr079_uses_param_max_range() -> None:
-    reader = load_scans(FR079)
+def test_fr079_uses_param_max_range(shared_data: Callable[..., Path]) -> None:
+    reader = load_scans(shared_data("fr079", "freiburg-079-corrected.log.gz"))
     assert isinstance(reader, CarmenReader)
     n_scans = n_no_return = 0
     for scan in reader:

@@ -6,6 +6,7 @@ import bz2
 import gzip
 import shutil
 import struct
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -307,10 +308,8 @@ def test_scan_dat_plain_equals_loadtxt() -> None:
     assert looks_like_scan_dat(path)
 
 
-def test_scan_dat_first_lines_of_real_scan() -> None:
-    full = Path(__file__).resolve().parents[2] / "shared" / "data" / "octomap_scan" / "scan.dat.bz2"
-    if not full.exists():
-        pytest.skip("shared OctoMap scan not present")
+def test_scan_dat_first_lines_of_real_scan(shared_data: Callable[..., Path]) -> None:
+    full = shared_data("octomap_scan", "scan.dat.bz2")
     with bz2.open(full, "rt") as fh:
         head = [next(fh) for _ in range(2000)]
     assert (DATA / "scan_small.dat").read_text() == "".join(head)

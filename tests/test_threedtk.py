@@ -8,6 +8,7 @@ import lzma
 import math
 import shutil
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,6 @@ from octolgp.io.threedtk_pose import LH_TO_RH, read_frames, read_pose
 from octolgp.scan import Scan
 
 FIXTURE = Path(__file__).resolve().parent / "data" / "3dtk"
-FULL = Path("/work/shared/data/3dtk_example_scans")
 
 
 def _raw(path: Path) -> np.ndarray:
@@ -339,9 +339,8 @@ def test_skip_bad_finds_every_malformed_line(n: int, bad: set[int], chunk: int) 
 # --------------------------------------------------------------------------- full data
 
 
-@pytest.mark.skipif(not FULL.is_dir(), reason="the full 3DTK example scans are not here")
-def test_full_example_scans_match_the_data_readme() -> None:
-    scans = list(read_3dtk(FULL))
+def test_full_example_scans_match_the_data_readme(shared_data: Callable[..., Path]) -> None:
+    scans = list(read_3dtk(shared_data("3dtk_example_scans")))
     no_returns, valid = [], []
     for scan in scans:
         r = np.linalg.norm(scan.points - scan.origin, axis=1)

@@ -2,7 +2,8 @@
 
 Sources (see their READMEs):
 
-- OctoMap's example scan ``data/octomap_scan/scan.dat.bz2`` (world frame = sensor frame, m);
+- OctoMap's example scan ``../shared/data/octomap_scan/scan.dat.bz2``, beside the repository
+  (world frame = sensor frame, m; the script stops with a note when it is absent);
 - the 3DTK test fixture ``tests/data/3dtk`` (cut-down 3DTK example scans), read with
   :class:`octolgp.io.threedtk.ThreeDTKReader` (registered ``.frames`` poses, metres).
 
@@ -109,6 +110,8 @@ def ascii_rows(values: np.ndarray) -> bytes:
 
 
 def main() -> None:
+    if not SCAN_DAT.is_file():
+        raise SystemExit(f"{SCAN_DAT} is absent (../shared/data is not part of a clone)")
     OUT.mkdir(parents=True, exist_ok=True)
     # --- OctoMap scan.dat
     with bz2.open(SCAN_DAT, "rt") as fh:
