@@ -71,7 +71,7 @@ THREEDTK = ROOT.parent / "shared" / "data" / "3dtk_example_scans"
 RESOLUTION = 0.2
 """Voxel edge of both maps and of the voxel-grid filter, metres."""
 HP_FIXED = {"signal_variance": 2.0, "noise_variance": 0.01, "alpha": 5.0, "beta": 0.0}
-"""The other hyperparameters that go with ``--hp LENGTH_SCALE`` (as tools/profile_insert_3d.py)."""
+"""The other hyperparameters that go with ``--hp LENGTH_SCALE``."""
 
 
 # ----------------------------------------------------------------------------- config
