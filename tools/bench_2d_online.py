@@ -1,4 +1,6 @@
-"""Per-scan ``insert_scan`` time of the 2D online map as a new user gets it (issue #14).
+"""Per-scan ``insert_scan`` time of the 2D online map as a new user gets it.
+
+Figures: BENCHMARKS.md, "2D: Intel, per-scan time as a new user gets it".
 
 ``OnlineMap(MapConfig(dim=2, resolution=0.1))`` with nothing else set: the first
 ``learn_scans`` (40) scans are buffered, the hyperparameters are learnt on them at the

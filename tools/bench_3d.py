@@ -1,4 +1,6 @@
-"""Real-time 3D benchmark (issue #14): octolgp and the real OctoMap on the same 3D lidar scans.
+"""Real-time 3D benchmark: octolgp and the real OctoMap on the same 3D lidar scans.
+
+Figures: BENCHMARKS.md, "3D: a 32 x 1024 lidar in a room, against the real OctoMap".
 
 Simulation (``octolgp.sim.lidar3d.simulate_lidar_room``): a 20 x 20 x 5 m room of
 axis-aligned boxes (walls, floor, ceiling and 14 pillars, crates, shelves, a duct ...),

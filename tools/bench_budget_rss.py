@@ -1,4 +1,6 @@
-"""Whether ``memory_budget_mb`` bounds the process RSS (issue #14's memory target).
+"""Whether ``memory_budget_mb`` bounds the process RSS.
+
+Figures: BENCHMARKS.md, "Memory: does the budget bound the process?".
 
 For each budget (and none), in a fresh child process: import octolgp, open the FR079
 log (``../shared/data/fr079``; skipped with a note when absent), insert one scan into a

@@ -1,4 +1,6 @@
-"""Pose corrections (issue #15): ``OnlineMap.correct_scans`` against a rebuild, on a drifting mission.
+"""Pose corrections: ``OnlineMap.correct_scans`` against a rebuild, on a drifting mission.
+
+Figures: BENCHMARKS.md, "Pose corrections against rebuilding".
 
 A long building (``--length`` m x 12 m: outer walls, rooms of pillars and desks along a
 central corridor), a robot with a 360° laser of 180 beams and 10 m range driving the

@@ -1,5 +1,7 @@
 """Dask build of a mid-size scene vs the local build: same map, and the time of each.
 
+Figures: BENCHMARKS.md, "Dask: 2-worker build of a mid-size scene".
+
 The scene is ``tools/bench_scale.py``'s street (``--length`` metres of loop, a 360 x 16
 lidar every metre). The local build fits the leaves on ``--jobs`` threads in this process;
 the Dask build runs them as tasks on an embedded ``LocalCluster`` of ``--workers`` worker

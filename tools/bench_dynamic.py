@@ -1,4 +1,6 @@
-"""A map that follows a changing world (issue #15): octolgp and the real OctoMap on moved objects.
+"""A map that follows a changing world: octolgp and the real OctoMap on moved objects.
+
+Figures: BENCHMARKS.md, "Moved objects, against the real OctoMap".
 
 Scenes (``octolgp.sim.dynamic``, exact geometry, no noise):
 

@@ -1,4 +1,7 @@
-"""Held-out AUC of the online map's leaf engines on a log, in one run (issue #14).
+"""Held-out AUC of the online map's leaf engines on a log, in one run.
+
+Figures: BENCHMARKS.md, "Held-out AUC: lattice against exact, same splits, same
+hyperparameters" and "Held-out AUC with forgetting on the real logs".
 
 For each engine (``lattice``, the default, and ``exact``, the paper's local GP with
 integral kernels) and each seed, ``octolgp eval``'s protocol (10 % of the scans held

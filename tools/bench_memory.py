@@ -1,4 +1,6 @@
-"""Long-mission memory benchmark (issue #5): peak RSS under a leaf budget vs unbounded.
+"""Long-mission memory benchmark: peak RSS under a leaf budget vs unbounded.
+
+Figures: BENCHMARKS.md, "Long missions".
 
 Each configuration runs in its own child process (so peak RSS is its own): the
 map is written through to a map file, with ``MapConfig(memory_budget_mb=B)`` or

@@ -1,4 +1,6 @@
-"""Benchmark of the online mapper (issue #3): online vs batch, saturation, speed vs OctoMap.
+"""Benchmark of the online mapper: online vs batch, saturation, speed vs OctoMap.
+
+Figures: BENCHMARKS.md, "Online mapper".
 
 Parts (``--parts``, comma-separated; all by default):
 

@@ -1,6 +1,7 @@
 """Benchmark: Kim & Kim Table II / Fig. 2-4 on the paper's 2D simulation.
 
-Same as ``octolgp bench paper2d``; prints the table and writes the figures.
+Same as ``octolgp bench paper2d``; prints the table and writes the figures (BENCHMARKS.md,
+"Kim & Kim Table II, Fig. 2–4: the paper's 2D simulation").
 
     python tools/bench_paper2d.py --out bench_out --repeats 5 --seeds 5
 """

@@ -1,4 +1,6 @@
-"""Speed of the online map against an earlier commit, in one run (issue #13's check).
+"""Speed of the online map against an earlier commit, in one run.
+
+Figures: BENCHMARKS.md, "Core rebuild".
 
 The same measurement as ``tools/bench_online.py --parts replay`` (Intel lab, 0.1 m,
 hyperparameters learnt on the first 10 scans, ``n_jobs`` threads), on the first

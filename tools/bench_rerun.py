@@ -1,4 +1,6 @@
-"""Benchmark: the cost of streaming an online map to Rerun, before and after (issues #4, #17).
+"""The cost of streaming an online map to Rerun, against no sink and an earlier sink.
+
+Figures: BENCHMARKS.md, "Rerun streaming" and "The tile view".
 
 Maps the first ``--scans`` scans of the bundled Intel log in one process, ``--repeats``
 times, into several maps at once, each scan inserted into every map in turn (the order
@@ -35,7 +37,7 @@ from octolgp.sinks import rerun as current
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"
-BEFORE = "4f61f61"  # the revision before the tiled view (issue #17)
+BEFORE = "4f61f61"  # a sink with one Rerun entity per leaf, the tile view's comparison
 
 Opener = Callable[[Path, int], tuple[Any, Any]]  # (rrd, dim) -> (recording, sink)
 

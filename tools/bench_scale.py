@@ -1,4 +1,6 @@
-"""Scale benchmark (issue #7): time, peak memory and AUC from 10^4 to ~3.7 x 10^6 items.
+"""Scale benchmark: time, peak memory and AUC from 10^4 to ~3.7 x 10^6 items.
+
+Figures: BENCHMARKS.md, "Scale" and "The paper-sized batch build".
 
 The scene is :func:`octolgp.mission.simulate_mission3d`: a street loop of buildings
 (4-15 m tall), fences, poles and trees on a ground plane, scanned by a simulated

@@ -1,4 +1,6 @@
-"""Issue #16's quality table from ``octolgp eval --out`` folders, one per log.
+"""The quality table from ``octolgp eval --out`` folders, one per log.
+
+Figures: BENCHMARKS.md, "Map quality on every log".
 
 Reads each folder's ``results.json`` (written by ``octolgp eval``) and prints, per log and
 method, AUC mean ± std and the worst split, then per log the splits below 0.95 with the share

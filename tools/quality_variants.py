@@ -1,4 +1,6 @@
-"""Held-out AUC of online-map settings on real logs: the scratch harness of issue #16.
+"""Held-out AUC of online-map settings on real logs.
+
+Figures: BENCHMARKS.md, "Map quality on every log".
 
 Runs the eval's splits, test points and hyperparameter learning (those of ``octolgp
 eval``) for the online map only, built in one step, once per variant, so several settings

@@ -1,4 +1,6 @@
-"""Screenshots of the Rerun view of a 2D and a 3D map, taken by the real viewer (issue #17).
+"""Screenshots of the Rerun view of a 2D and a 3D map, taken by the real viewer.
+
+Used in BENCHMARKS.md, "The tile view" (``docs/rerun_2d.png``, ``docs/rerun_3d.png``).
 
 Records the Intel log (2D, ``--scans`` scans, the whole log by default) and a simulated 3D
 lidar drive down a street (:func:`octolgp.sim.mission.simulate_mission3d`) the way ``octolgp run

@@ -1,5 +1,7 @@
 """Per eval split: held-out returns the training never hit, and those it looked through.
 
+Figures: BENCHMARKS.md, "Why splits fail: walls that only the held-out scans hit".
+
 For each split of ``octolgp eval --protocol hilbert``: how much of what the held-out scans
 hit the training scans never hit, and how much of that they looked through.
 

@@ -1,4 +1,4 @@
-"""A changing world with exact geometry (issue #15): objects that move, doors that open, people.
+"""A changing world with exact geometry: objects that move, doors that open, people.
 
 Two scenes of axis-aligned boxes seen by a robot driving a loop:
 

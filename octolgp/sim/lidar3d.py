@@ -1,4 +1,4 @@
-"""A spinning 3D lidar in a furnished room, with exact ground truth (issue #14's benchmark).
+"""A spinning 3D lidar in a furnished room, with exact ground truth (``tools/bench_3d.py``'s scene).
 
 :func:`simulate_lidar_room` builds a 20 x 20 x 5 m room: floor, ceiling and four
 walls 0.3 m thick, and 14 axis-aligned boxes inside (floor-to-ceiling pillars,
