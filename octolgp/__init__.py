@@ -12,7 +12,9 @@ import logging
 
 from octolgp.batch.build import build_map
 from octolgp.config import (
+    ExactConfig,
     Hyperparameters,
+    LatticeConfig,
     LearningConfig,
     MapConfig,
     OgmConfig,
@@ -31,7 +33,9 @@ __version__ = "0.1.0"
 logging.getLogger(__name__).addHandler(logging.NullHandler())
 
 __all__ = [
+    "ExactConfig",
     "Hyperparameters",
+    "LatticeConfig",
     "LearningConfig",
     "MapConfig",
     "OctolgpError",

@@ -172,22 +172,12 @@ class LearningConfig:
         jointly by the LOO predictive probability, starting from that point. It
         helped on the paper's simulation (AUC +0.002) but hurt on a noise-free room
         (signal variance ran to its bound), so it is opt-in.
-    balance_classes : bool
-        Fit PLSC's α, β with occupied and free items weighted equally
-        (:func:`octolgp.gp.plsc.fit_plsc`).
-    min_noise_variance : float
-        Lower bound of the learnt noise variance ``σn²`` (targets are ±1). Default
-        0.01: on real logs the likelihood otherwise drives ``σn²`` to ~1e-4 on some
-        subsets and the length scale with it, and held-out AUC drops (Intel seed 0:
-        0.936 at 1e-4, 0.981 at 0.01; FR079: 0.907 → 0.940 learning on 10 scans).
     """
 
     max_clusters: int = 8
     max_items_per_cluster: int = 300
     seed: int = 0
     objective: str = "lml"
-    balance_classes: bool = False
-    min_noise_variance: float = 1e-2
 
     def __post_init__(self) -> None:
         if self.objective not in ("lml+loo", "lml"):
@@ -197,7 +187,6 @@ class LearningConfig:
         _integer("LearningConfig", "max_clusters", self.max_clusters, 1)
         _integer("LearningConfig", "max_items_per_cluster", self.max_items_per_cluster, 4)
         _integer("LearningConfig", "seed", self.seed, 0)
-        _positive("LearningConfig", "min_noise_variance", self.min_noise_variance)
 
 
 @dataclass(frozen=True, slots=True)
@@ -230,173 +219,78 @@ class OgmConfig:
 
 @dataclass(frozen=True, slots=True)
 class OnlineConfig:
-    """The online mapper: leaf grid, halos, per-leaf caps, learning and pruning.
+    """The online mapper: which leaf engine, the leaf grid, learning, threads, forgetting.
 
     Parameters
     ----------
+    engine : {"lattice", "exact"}
+        The leaf engine. ``"lattice"`` (default): each leaf keeps per-voxel observation
+        counts of its halo box and is a sparse GP on an inducing lattice whose kernel
+        tables every leaf shares (:mod:`octolgp.engines.lattice`, tuned by
+        :class:`LatticeConfig`). ``"exact"``: the paper's local GP on hits and free
+        segments with integral kernels (:mod:`octolgp.engines.exact`, tuned by
+        :class:`ExactConfig`), the reference the lattice engine is tested against and
+        much slower in 3D (``BENCHMARKS.md``, "Lattice engine").
     leaf_depth : int or None
-        OctoMap tree depth of the leaves; a leaf spans ``2**(tree_depth -
-        leaf_depth)`` voxels per axis. ``None`` (default) gives 16 × 16 voxels in
-        2D and, in 3D, 4 × 4 × 4 for the lattice engine and 8 × 8 × 8 for the exact
-        one (:attr:`MapConfig.leaf_depth`).
+        OctoMap tree depth of the leaves; a leaf spans ``2**(tree_depth - leaf_depth)``
+        voxels per axis. ``None`` (default): 16 × 16 voxels in 2D and, in 3D, 4 × 4 × 4
+        for the lattice engine (its cost per voxel grows with the leaf) and 8 × 8 × 8
+        for the exact one.
     halo : float
         Overlap margin around each leaf as a fraction of its edge, in ``[0, 0.5)``.
         Default 0.2.
-    max_leaf_items : int
-        A leaf with more training items than this is split into k-means clusters
-        under ``partition.max_cluster_size`` (the paper's iterative k-means);
-        below it the leaf is one local GP. Default 400.
     learn_scans : int or None
-        With ``MapConfig.hyperparameters=None`` the first this many scans are
-        buffered, the hyperparameters are learnt on them and then held fixed.
-        ``None`` (default): 40 in 2D (on the Intel and FR079 logs, learning on the
-        first 10 scans, the robot still in its first room, gave held-out AUC 0.965 /
-        0.907, on the first 40 0.972 / 0.941; ``BENCHMARKS.md``) and 5 in 3D, where
-        one lidar scan holds a hundred times the beams of a 2D scan
-        (:attr:`MapConfig.learn_scans`).
-    prune : bool
-        Collapse a leaf whose voxels are all confidently free or all confidently
-        occupied to one value (OctoMap-style pruning). Default True.
-    prune_free, prune_occupied : float
-        The confidence bounds of pruning, P(occupied) below / above (OctoMap's
-        clamping thresholds by default).
+        With ``MapConfig.hyperparameters=None`` the first this many scans are buffered,
+        the hyperparameters are learnt on them and then held fixed. ``None`` (default):
+        40 in 2D (the robot has left its first room by then) and 5 in 3D, where one
+        lidar scan holds a hundred times the beams of a 2D scan.
     n_jobs : int or None
         Threads refitting leaves in parallel (BLAS held to one thread each). ``None``
-        (default): the CPU cores the process may use, at most 8
-        (:attr:`MapConfig.n_jobs`); on the 2-core development machine two threads
-        took the Intel median from 37 to 29 ms. Results do not depend on it (the
-        exact engine bit for bit; the lattice engine to rounding, see
-        :mod:`octolgp.gp.lattice`).
-    free_voxels : int
-        A leaf keeps one free piece per cube of this many voxels on an edge (by
-        the piece's end); 1 keeps one per voxel.
+        (default): the CPU cores the process may use, at most 8. A runtime setting, not
+        part of the map: the exact engine's results do not depend on it, the lattice
+        engine's only to rounding (:mod:`octolgp.gp.lattice`).
+    clear_scans : int or None
+        How fast the map forgets (newer evidence wins, :func:`octolgp.observations.
+        newer_evidence_wins`): a voxel's returns are forgotten once this many scans have
+        seen it free since its last return, and a return clears the voxel's free count,
+        so a moved object's voxels read free after the robot has looked through them this
+        many times. ``0``: a static world, every observation kept for good. ``None``
+        (default): 5 with the lattice engine, 0 with the exact one (which keeps the first
+        evidence per voxel and cannot forget). In 0..255 (``BENCHMARKS.md``, "A changing
+        world").
     max_scan_points : int
         ``insert_scan`` refuses a scan with more points than this (an
-        :class:`~octolgp.errors.OctolgpError` naming this field), so that one huge
-        scan cannot exhaust memory: inserting a 2D scan of 10^6 random 10 m beams
-        peaks near 4 GB. Downsample such a scan (:meth:`Scan.downsample`) or raise
+        :class:`~octolgp.errors.OctolgpError` naming this field), so that one huge scan
+        cannot exhaust memory. Downsample such a scan (:meth:`Scan.downsample`) or raise
         the limit. Default 1_000_000.
-    kernel_cache_mb : float
-        RAM (MB) for the item covariance blocks of recently refitted leaves. A leaf
-        that gains a few items reuses the blocks of the items it had and evaluates
-        the kernel only for the new ones; the result is bit for bit that of a fresh
-        fit. Least recently used leaves are dropped first; 0 disables the cache.
-        Default 64.
-    engine : {"lattice", "exact"}
-        The leaf GP. ``"lattice"`` (default): each leaf keeps per-voxel observation
-        counts of its halo box and is a sparse GP on an inducing lattice whose
-        kernel tables are shared by every leaf (:mod:`octolgp.gp.lattice`); leaves
-        are fitted many at a time with a few matrix products. ``"exact"``: the
-        paper's local GP on hits and free segments with integral kernels
-        (:mod:`octolgp.gp.kernels`), the reference the lattice engine is tested
-        against; 10-100x slower in 3D (``BENCHMARKS.md``).
-    evidence_cap : int
-        Lattice engine: scans counted per voxel and class (occupied, free). ``1``
-        keeps whether a voxel was ever seen occupied and, in a static map
-        (``clear_scans`` 0), ever seen free, so a static revisit changes nothing and
-        costs nothing; with newer evidence winning free looks count up to
-        ``clear_scans`` instead (see ``free_weight``). Default 1.
-    free_weight : float
-        Lattice engine: a free observation counts this much of a return (its noise
-        variance is ``σn² / free_weight``), so that free space, which a scan observes in
-        far more voxels than it hits, does not swamp the returns. With newer evidence
-        winning a voxel's free looks count up to ``clear_scans`` scans
-        (:func:`~octolgp.observations.effective_counts`), so a voxel seen free once
-        weighs 0.06 against a return and one seen free scan after scan 0.3. Default 0.06:
-        held-out AUC (Hilbert maps' protocol, 5 seeds) above the previous rule (0.3, one
-        free count per voxel) on all six short real 2D logs (Belgioioso +0.016, Örebro
-        +0.022) and level on FR079, an opened door and a moved crate clearing as before
-        (``tools/bench_dynamic.py``), and the simulated 3D lidar room at 0.9961 (0.9960);
-        one free count per voxel at 0.08 gained AUC too but kept an opened door's cells
-        next to its frame occupied for good (``BENCHMARKS.md``, issue #16).
-    inducing_spacing : float or None
-        Lattice engine: largest spacing of the inducing lattice as a fraction of the
-        length scale; the lattice gets ``ceil(halo box edge / (spacing × l))`` points
-        per axis, at least one per 3 voxels and at most ``max_inducing_per_axis``.
-        ``None`` (default): 0.3 in 2D, 0.5 in 3D (:attr:`MapConfig.inducing_spacing`).
-        On Intel 0.5 lost 0.005-0.007 AUC to the exact engine on two of three splits and
-        0.3 gained 0.003-0.006; in 3D a denser lattice did not help and costs ``k**6``.
-    max_inducing_per_axis : int
-        Lattice engine: cap on the lattice points per axis (a 3D leaf costs about
-        ``k**6``; its product table ``H k**d (k**d + 1) / 2`` floats). Default 0: 12 in 2D
-        (a 48 MB table), 4 in 3D.
-    clear_scans : int or None
-        Lattice engine: how fast the map forgets (newer evidence wins). A voxel's
-        returns are forgotten once this many scans have seen it free since its last
-        return, and a return clears the voxel's free count, so a moved object's voxels
-        read free after the robot has looked through them this many times and a new
-        object registers with its first return (:mod:`octolgp.observations`). ``0``:
-        a static world, every return and free observation kept for good. ``None``
-        (default): 5 with the lattice engine (:attr:`MapConfig.clear_scans`), 0 with
-        the exact one, which keeps the first evidence per voxel. In 0..255. With 5 a
-        moved crate clears in 6 scans and an opened door in 15.5 where OctoMap's default
-        probabilities take 8 and 17 (``tools/bench_dynamic.py``), and held-out AUC is
-        above the static map's on Intel (0.9880 against 0.9842 at the free weight of
-        issue #16; 0.9862 against 0.9848 before) and FR079 (0.9559 against 0.9501; 8
-        gives 0.9631 but clears a scan or two later than OctoMap; ``BENCHMARKS.md``).
-    clear_margin : float or None
-        With ``clear_scans`` > 0: metres before a return within which its beam's free
-        segment does not count towards forgetting (it is still free evidence), as a beam
-        grazing a wall crosses wall voxels just before its return. No-return beams never
-        count towards forgetting either (a dark or glass surface returns nothing): on
-        FR079 they erased walls, held-out AUC 0.904 with them against 0.960 without.
-        ``None`` (default): 5 voxels (:attr:`MapConfig.clear_margin`).
+    prune : bool
+        Collapse a leaf whose voxels are all confidently free or all confidently
+        occupied to one value (OctoMap-style pruning at its clamping bounds). Default True.
     """
 
+    engine: str = "lattice"
     leaf_depth: int | None = None
     halo: float = 0.2
-    max_leaf_items: int = 400
     learn_scans: int | None = None
-    prune: bool = True
-    prune_free: float = 0.1192
-    prune_occupied: float = 0.971
     n_jobs: int | None = None
-    free_voxels: int = 1
-    max_scan_points: int = 1_000_000
-    kernel_cache_mb: float = 64.0
-    engine: str = "lattice"
-    evidence_cap: int = 1
-    free_weight: float = 0.06
-    inducing_spacing: float | None = None
-    max_inducing_per_axis: int = 0
     clear_scans: int | None = None
-    clear_margin: float | None = None
+    max_scan_points: int = 1_000_000
+    prune: bool = True
 
     def __post_init__(self) -> None:
+        if self.engine not in ("lattice", "exact"):
+            raise OctolgpError(
+                f"OnlineConfig.engine must be 'lattice' or 'exact', got {self.engine!r}"
+            )
         if self.leaf_depth is not None:
             _integer("OnlineConfig", "leaf_depth", self.leaf_depth, 1, 16)
         ok = isinstance(self.halo, int | float) and not isinstance(self.halo, bool)
         if not ok or not math.isfinite(self.halo) or not 0 <= self.halo < 0.5:
             raise OctolgpError(f"OnlineConfig.halo must be a number in [0, 0.5), got {self.halo!r}")
-        _integer("OnlineConfig", "max_leaf_items", self.max_leaf_items, 2)
         if self.learn_scans is not None:
             _integer("OnlineConfig", "learn_scans", self.learn_scans, 1)
-        if not isinstance(self.prune, bool):
-            raise OctolgpError(f"OnlineConfig.prune must be a bool, got {self.prune!r}")
-        _fraction("OnlineConfig", "prune_free", self.prune_free, open_low=True)
-        _fraction("OnlineConfig", "prune_occupied", self.prune_occupied, open_low=True)
-        if not self.prune_free < 0.5 < self.prune_occupied:
-            raise OctolgpError(
-                "OnlineConfig.prune_free must be < 0.5 < OnlineConfig.prune_occupied"
-            )
         if self.n_jobs is not None:
             _integer("OnlineConfig", "n_jobs", self.n_jobs, 1)
-        _integer("OnlineConfig", "free_voxels", self.free_voxels, 1, 64)
-        _integer("OnlineConfig", "max_scan_points", self.max_scan_points, 1)
-        _positive("OnlineConfig", "kernel_cache_mb", self.kernel_cache_mb, allow_zero=True)
-        if self.engine not in ("lattice", "exact"):
-            raise OctolgpError(
-                f"OnlineConfig.engine must be 'lattice' or 'exact', got {self.engine!r}"
-            )
-        _integer("OnlineConfig", "evidence_cap", self.evidence_cap, 1, 255)
-        _positive("OnlineConfig", "free_weight", self.free_weight)
-        if self.inducing_spacing is not None:
-            _positive("OnlineConfig", "inducing_spacing", self.inducing_spacing)
-        _integer("OnlineConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 0, 16)
-        if self.clear_margin is not None:
-            _positive("OnlineConfig", "clear_margin", self.clear_margin, allow_zero=True)
-        if self.max_inducing_per_axis == 1:
-            raise OctolgpError("OnlineConfig.max_inducing_per_axis must be 0 or >= 2, got 1")
         if self.clear_scans is not None:
             _integer("OnlineConfig", "clear_scans", self.clear_scans, 0, 255)
             if self.clear_scans and self.engine != "lattice":
@@ -404,18 +298,116 @@ class OnlineConfig:
                     "OnlineConfig.clear_scans must be 0 or None with engine='exact' "
                     f"(forgetting needs the lattice engine), got {self.clear_scans}"
                 )
+        _integer("OnlineConfig", "max_scan_points", self.max_scan_points, 1)
+        if not isinstance(self.prune, bool):
+            raise OctolgpError(f"OnlineConfig.prune must be a bool, got {self.prune!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class LatticeConfig:
+    """The lattice leaf engine's advanced settings (:mod:`octolgp.engines.lattice`).
+
+    Parameters
+    ----------
+    evidence_cap : int
+        Scans counted per voxel and class (occupied, free). ``1`` keeps whether a voxel
+        was ever seen occupied and, in a static map, ever seen free, so a static revisit
+        changes nothing and costs nothing; with forgetting on, free looks count up to
+        ``OnlineConfig.clear_scans`` instead. Default 1.
+    free_weight : float
+        A free observation counts this much of a return (its noise variance is
+        ``σn² / free_weight``), so that free space, which a scan observes in far more
+        voxels than it hits, does not swamp the returns. With forgetting on, a voxel's
+        free looks count up to ``clear_scans`` scans
+        (:func:`~octolgp.observations.effective_counts`): a voxel seen free once, beside
+        a wall, weighs little, one seen free scan after scan (an opened doorway) the
+        most. Default 0.06 (``BENCHMARKS.md``, "Map quality on every log").
+    inducing_spacing : float or None
+        Largest spacing of the inducing lattice as a fraction of the length scale; the
+        lattice gets ``ceil(halo box edge / (spacing × l))`` points per axis, at least
+        one per 3 voxels and at most ``max_inducing_per_axis``. ``None`` (default): 0.3
+        in 2D, 0.5 in 3D, where a denser lattice does not help and a leaf costs
+        ``k**6``.
+    max_inducing_per_axis : int or None
+        Cap on the lattice points per axis (the product table holds
+        ``H k**d (k**d + 1) / 2`` floats). ``None`` (default): 12 in 2D, 4 in 3D.
+    clear_margin : float or None
+        With forgetting on: metres before a return within which its beam's free segment
+        does not count towards forgetting (it is still free evidence), as a beam grazing
+        a wall crosses wall voxels just before its return. No-return beams never count
+        towards forgetting either (a dark or glass surface returns nothing). ``None``
+        (default): 5 voxels.
+    """
+
+    evidence_cap: int = 1
+    free_weight: float = 0.06
+    inducing_spacing: float | None = None
+    max_inducing_per_axis: int | None = None
+    clear_margin: float | None = None
+
+    def __post_init__(self) -> None:
+        _integer("LatticeConfig", "evidence_cap", self.evidence_cap, 1, 255)
+        _positive("LatticeConfig", "free_weight", self.free_weight)
+        if self.inducing_spacing is not None:
+            _positive("LatticeConfig", "inducing_spacing", self.inducing_spacing)
+        if self.max_inducing_per_axis is not None:
+            _integer("LatticeConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 2, 16)
+        if self.clear_margin is not None:
+            _positive("LatticeConfig", "clear_margin", self.clear_margin, allow_zero=True)
+
+
+@dataclass(frozen=True, slots=True)
+class ExactConfig:
+    """The exact leaf engine's advanced settings (:mod:`octolgp.engines.exact`).
+
+    Parameters
+    ----------
+    max_leaf_items : int
+        A leaf with more training items than this is split into k-means clusters under
+        ``PartitionConfig.max_cluster_size`` (the paper's iterative k-means); below it
+        the leaf is one local GP. Default 400.
+    free_voxels : int
+        A leaf keeps one free piece per cube of this many voxels on an edge (by the
+        piece's end); 1 keeps one per voxel.
+    """
+
+    max_leaf_items: int = 400
+    free_voxels: int = 1
+
+    def __post_init__(self) -> None:
+        _integer("ExactConfig", "max_leaf_items", self.max_leaf_items, 2)
+        _integer("ExactConfig", "free_voxels", self.free_voxels, 1, 64)
 
 
 DEFAULT_CLEAR_SCANS = 5
 """The lattice engine's default ``clear_scans`` (see :class:`OnlineConfig`)."""
 
 CLEAR_MARGIN_VOXELS = 5
-"""The default ``clear_margin`` in voxels (see :class:`OnlineConfig`)."""
+"""The default ``clear_margin`` in voxels (see :class:`LatticeConfig`)."""
+
+DEFAULT_LEARN_SCANS = MappingProxyType({2: 40, 3: 5})
+"""The default ``learn_scans`` per dimension (see :class:`OnlineConfig`)."""
+
+DEFAULT_INDUCING_SPACING = MappingProxyType({2: 0.3, 3: 0.5})
+"""The default ``inducing_spacing`` per dimension (see :class:`LatticeConfig`)."""
+
+DEFAULT_MAX_INDUCING = MappingProxyType({2: 12, 3: 4})
+"""The default ``max_inducing_per_axis`` per dimension (see :class:`LatticeConfig`)."""
+
+LEAF_VOXELS_LOG2 = MappingProxyType(
+    {(2, "lattice"): 4, (2, "exact"): 4, (3, "lattice"): 2, (3, "exact"): 3}
+)
+"""The default leaf edge, log2 of voxels, per (dimension, engine) (see :class:`OnlineConfig`)."""
 
 
 @dataclass(frozen=True, slots=True)
 class MapConfig:
     """Everything that defines a map. ``MapConfig()`` serves as is.
+
+    A field left at ``None`` takes a default derived from the others (its section's
+    docstring says which); :meth:`resolve` fills every such field in. A map resolves its
+    config once, when it is made, and its file stores the resolved config whole, so a
+    saved map means the same whatever defaults the code that reopens it has.
 
     Parameters
     ----------
@@ -429,8 +421,13 @@ class MapConfig:
         Bound on the RAM held by leaves; ``None`` (default) means no bound.
     tree_depth : int
         OctoMap key depth: keys are 16-bit, ``floor(x / resolution) + 2**(depth-1)``.
-    training, partition, learning, ogm, online
-        The per-stage sections.
+    online : OnlineConfig
+        The online map: engine, leaf grid, learning, threads, forgetting.
+    lattice, exact : LatticeConfig, ExactConfig
+        Each leaf engine's advanced settings.
+    training, partition, learning, ogm
+        The batch methods' stages (also the exact engine's training data and the
+        hyperparameter learning).
     """
 
     dim: int = 3
@@ -443,6 +440,8 @@ class MapConfig:
     learning: LearningConfig = field(default_factory=LearningConfig)
     ogm: OgmConfig = field(default_factory=OgmConfig)
     online: OnlineConfig = field(default_factory=OnlineConfig)
+    lattice: LatticeConfig = field(default_factory=LatticeConfig)
+    exact: ExactConfig = field(default_factory=ExactConfig)
 
     def __post_init__(self) -> None:
         if type(self.dim) is not int or self.dim not in (2, 3):
@@ -451,15 +450,7 @@ class MapConfig:
         if self.memory_budget_mb is not None:
             _positive("MapConfig", "memory_budget_mb", self.memory_budget_mb)
         _integer("MapConfig", "tree_depth", self.tree_depth, 1, 16)
-        checks: tuple[tuple[str, type], ...] = (
-            ("hyperparameters", Hyperparameters),
-            ("training", TrainingConfig),
-            ("partition", PartitionConfig),
-            ("learning", LearningConfig),
-            ("ogm", OgmConfig),
-            ("online", OnlineConfig),
-        )
-        for name, kind in checks:
+        for name, kind in _SECTIONS.items():
             value = getattr(self, name)
             if value is None and name == "hyperparameters":
                 continue
@@ -472,73 +463,90 @@ class MapConfig:
                 f"({self.tree_depth}), got {leaf_depth}"
             )
 
+    def resolve(self) -> MapConfig:
+        """Fill in every derived default (``n_jobs`` excepted); return the new config.
+
+        ``n_jobs`` stays as given: threads are a property of the machine running the
+        map, not of the map. Resolving a resolved config returns an equal one.
+        """
+        online = dataclasses.replace(
+            self.online,
+            leaf_depth=self.leaf_depth,
+            learn_scans=self.learn_scans,
+            clear_scans=self.clear_scans,
+        )
+        lattice = dataclasses.replace(
+            self.lattice,
+            inducing_spacing=self.inducing_spacing,
+            max_inducing_per_axis=self.max_inducing_per_axis,
+            clear_margin=self.clear_margin,
+        )
+        training = dataclasses.replace(self.training, free_margin=self.free_margin)
+        return dataclasses.replace(self, online=online, lattice=lattice, training=training)
+
+    # The values in force: a field's own value, or its default derived from the others.
     @property
     def leaf_depth(self) -> int:
-        """Tree depth of the online map's leaves (``online.leaf_depth`` or the default).
-
-        Default: leaves of 16 x 16 voxels in 2D; in 3D 4 x 4 x 4 for the lattice engine
-        (its cost per voxel grows with the leaf) and 8 x 8 x 8 for the exact one.
-        """
+        """Tree depth of the online map's leaves (``online.leaf_depth`` or its default)."""
         if self.online.leaf_depth is not None:
             return self.online.leaf_depth
-        if self.dim == 2:
-            return self.tree_depth - 4
-        return self.tree_depth - (2 if self.online.engine == "lattice" else 3)
+        return self.tree_depth - LEAF_VOXELS_LOG2[(self.dim, self.online.engine)]
 
     @property
     def n_jobs(self) -> int:
         """Leaf-fitting threads: ``online.n_jobs``, or the usable CPU cores (at most 8)."""
         if self.online.n_jobs is not None:
             return self.online.n_jobs
-        return max(
-            1,
-            min(
-                8,
-                len(os.sched_getaffinity(0))
-                if hasattr(os, "sched_getaffinity")
-                else (os.cpu_count() or 1),
-            ),
-        )
+        if hasattr(os, "sched_getaffinity"):
+            return max(1, min(8, len(os.sched_getaffinity(0))))
+        return max(1, min(8, os.cpu_count() or 1))
 
     @property
     def inducing_spacing(self) -> float:
-        """Lattice spacing over length scale: ``online.inducing_spacing`` or 0.3 / 0.5."""
-        if self.online.inducing_spacing is not None:
-            return self.online.inducing_spacing
-        return 0.3 if self.dim == 2 else 0.5
+        """Lattice spacing over length scale (``lattice.inducing_spacing`` or its default)."""
+        if self.lattice.inducing_spacing is not None:
+            return self.lattice.inducing_spacing
+        return DEFAULT_INDUCING_SPACING[self.dim]
+
+    @property
+    def max_inducing_per_axis(self) -> int:
+        """Cap on lattice points per axis (``lattice.max_inducing_per_axis`` or its default)."""
+        if self.lattice.max_inducing_per_axis is not None:
+            return self.lattice.max_inducing_per_axis
+        return DEFAULT_MAX_INDUCING[self.dim]
 
     @property
     def clear_scans(self) -> int:
-        """Scans seeing a voxel free that forget its returns (``online.clear_scans``).
-
-        Default: 5 with the lattice engine, 0 (a static world) with the exact one.
-        """
+        """Free looks that forget a voxel's returns (``online.clear_scans`` or its default)."""
         if self.online.clear_scans is not None:
             return self.online.clear_scans
         return DEFAULT_CLEAR_SCANS if self.online.engine == "lattice" else 0
 
     @property
     def clear_margin(self) -> float:
-        """Metres before a return that do not count towards forgetting (default 5 voxels)."""
-        if self.online.clear_margin is not None:
-            return self.online.clear_margin
+        """Metres before a return that do not count towards forgetting (or 5 voxels)."""
+        if self.lattice.clear_margin is not None:
+            return self.lattice.clear_margin
         return CLEAR_MARGIN_VOXELS * self.resolution
 
     @property
     def learn_scans(self) -> int:
-        """Scans buffered to learn hyperparameters on (``online.learn_scans`` or 40 / 5)."""
+        """Scans buffered to learn hyperparameters on (``online.learn_scans`` or its default)."""
         if self.online.learn_scans is not None:
             return self.online.learn_scans
-        return 40 if self.dim == 2 else 5
+        return DEFAULT_LEARN_SCANS[self.dim]
 
     @property
     def free_margin(self) -> float:
-        """Metres a free segment stops short of its hit."""
+        """Metres a free segment stops short of its hit (``training.free_margin`` or one voxel)."""
         margin = self.training.free_margin
         return self.resolution if margin is None else margin
 
     def to_dict(self) -> dict[str, Any]:
-        """Return the config as nested plain dicts (``None`` values dropped, TOML-ready)."""
+        """Return the config as nested plain dicts (``None`` values dropped, TOML-ready).
+
+        ``resolve().to_dict()`` holds every field but ``n_jobs`` when not given.
+        """
 
         def strip(d: dict[str, Any]) -> dict[str, Any]:
             return {
@@ -564,6 +572,7 @@ class MapConfig:
         """:meth:`from_dict`; errors start with ``where``, keys named as in TOML if asked."""
         kwargs: dict[str, Any] = {}
         valid = [f.name for f in dataclasses.fields(cls)]
+        data = _migrate(data, where)
         for key, value in data.items():
             if key not in valid:
                 raise OctolgpError(f"{where}{key}: unknown key (keys: {', '.join(valid)})")
@@ -643,9 +652,63 @@ _SECTIONS: MappingProxyType[str, type] = MappingProxyType(
         "learning": LearningConfig,
         "ogm": OgmConfig,
         "online": OnlineConfig,
+        "lattice": LatticeConfig,
+        "exact": ExactConfig,
     }
 )
 """The sections of :class:`MapConfig`: TOML table name -> dataclass."""
+
+_MOVED = MappingProxyType(
+    {
+        ("online", "evidence_cap"): "lattice",
+        ("online", "free_weight"): "lattice",
+        ("online", "inducing_spacing"): "lattice",
+        ("online", "max_inducing_per_axis"): "lattice",
+        ("online", "clear_margin"): "lattice",
+        ("online", "max_leaf_items"): "exact",
+        ("online", "free_voxels"): "exact",
+    }
+)
+"""Keys of earlier configs (map files, TOML files) that now live in another section."""
+
+_FIXED = MappingProxyType(
+    {
+        ("online", "prune_free"): 0.1192,
+        ("online", "prune_occupied"): 0.971,
+        ("online", "kernel_cache_mb"): 64.0,
+        ("learning", "balance_classes"): False,
+        ("learning", "min_noise_variance"): 1e-2,
+    }
+)
+"""Keys of earlier configs that are constants now, with the one value they still accept."""
+
+
+def _migrate(data: dict[str, Any], where: str) -> dict[str, Any]:
+    """A config dict of an earlier layout in today's sections (a new dict).
+
+    Moved keys go to their section; a fixed key is dropped when it holds its constant's
+    value and refused otherwise; ``online.max_inducing_per_axis = 0`` meant "derived".
+    """
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    for (section, key), target in _MOVED.items():
+        table = out.get(section)
+        if isinstance(table, dict) and key in table:
+            value = table.pop(key)
+            if key == "max_inducing_per_axis" and value == 0:
+                continue
+            moved = out.setdefault(target, {})
+            if isinstance(moved, dict):
+                moved.setdefault(key, value)
+    for (section, key), fixed in _FIXED.items():
+        table = out.get(section)
+        if isinstance(table, dict) and key in table:
+            value = table.pop(key)
+            if value != fixed:
+                raise OctolgpError(
+                    f"{where}{section}.{key}: no longer a setting (fixed at {fixed!r}), got "
+                    f"{value!r}"
+                )
+    return out
 
 
 def _toml_named(message: str) -> str:

@@ -14,7 +14,11 @@ import pytest
 
 from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
 from octolgp.cli import main
+from octolgp.engines import engine_for
+from octolgp.engines.base import evidence_arrays
 from octolgp.export.octomap_read import decode_bt, read_bt_header
+from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.store import Leaf
 from octolgp.persist.mapfile import decode_leaf, encode_leaf
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
@@ -29,8 +33,11 @@ def _scans() -> list:  # type: ignore[type-arg]
 
 
 def _values(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
-    fields = ("hits", "free_start", "free_end", "counts", "mean", "var", "prob")
-    return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
+    fields = ("mean", "var", "prob")
+    return {
+        k: (*evidence_bytes(leaf), *(getattr(leaf, f).tobytes() for f in fields))
+        for k, leaf in m.leaves()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -44,18 +51,22 @@ def reference() -> list[dict[int, tuple[bytes, ...]]]:
     return out
 
 
-def test_leaf_encoding_round_trips_and_rejects_corruption() -> None:
-    m = OnlineMap(CONFIG)
+@pytest.mark.parametrize("engine", ["lattice", "exact"])
+def test_leaf_encoding_round_trips_and_rejects_corruption(engine: str) -> None:
+    config = dataclasses.replace(CONFIG, online=dataclasses.replace(CONFIG.online, engine=engine))
+    m = OnlineMap(config)
     m.insert_scans(_scans()[:2])
+    codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)
     for _, leaf in m.leaves():
-        blob = encode_leaf(leaf)
-        back = decode_leaf(blob)
-        assert encode_leaf(back) == blob
+        blob = encode_leaf(leaf, codec)
+        back = decode_leaf(blob, codec, grid)
+        assert encode_leaf(back, codec) == blob
+        assert evidence_bytes(back) == evidence_bytes(leaf)
         assert back.pruned == leaf.pruned
         with pytest.raises(OctolgpError, match=r"bytes|header|truncated"):
-            decode_leaf(blob[:-3])
+            decode_leaf(blob[:-3], codec, grid)
         with pytest.raises(OctolgpError, match="header"):
-            decode_leaf(b"XXXX" + blob[4:])
+            decode_leaf(b"XXXX" + blob[4:], codec, grid)
 
 
 def test_budget_evicts_to_the_file_and_gives_the_same_map(
@@ -232,36 +243,142 @@ def test_reopened_budget_map_evicts_into_its_own_file(
     assert set(Path(tempfile.gettempdir()).glob("octolgp-*.octolgp")) == spills
 
 
-def test_version_1_leaf_records_still_read() -> None:
-    """A leaf record from before the lattice engine (no counts) decodes as before."""
+def _old_record(leaf: object, version: int) -> bytes:
+    """A leaf in the record layout of versions 1 and 2 (both engines' arrays in one)."""
     import struct
 
-    exact = dataclasses.replace(CONFIG, online=dataclasses.replace(CONFIG.online, engine="exact"))
-    m = OnlineMap(exact)
+    ev = leaf.evidence  # type: ignore[attr-defined]
+    d = leaf.index.size  # type: ignore[attr-defined]
+    none = np.zeros((0, d))
+    hits, hit_keys = ev.hits, ev.hit_keys
+    fs, fe, fk = (getattr(ev, n, none) for n in ("free_start", "free_end", "free_keys"))
+    counts = getattr(ev, "counts", np.zeros((2, 0), np.uint8))
+    head = struct.pack(
+        "<4sBBxxqqqqqq", b"OLGL", version, d, hits.shape[0], fs.shape[0],
+        leaf.prob.size, int(leaf.pruned), leaf.refits, leaf.touched,  # type: ignore[attr-defined]
+    )  # fmt: skip
+    parts = [
+        leaf.index.astype("<i8"),  # type: ignore[attr-defined]
+        hits.astype("<f8"), hit_keys.astype("<i8"), fs.astype("<f8"), fe.astype("<f8"),
+        np.asarray(fk, dtype="<i8"), leaf.mean.astype("<f4"),  # type: ignore[attr-defined]
+        leaf.var.astype("<f4"), leaf.prob.astype("<f4"),  # type: ignore[attr-defined]
+    ]  # fmt: skip
+    if version == 2:
+        head += struct.pack("<q", counts.shape[1])
+        parts.append(np.ascontiguousarray(counts, dtype=np.uint8))
+    return head + b"".join(p.tobytes() for p in parts)
+
+
+@pytest.mark.parametrize(("engine", "version"), [("exact", 1), ("exact", 2), ("lattice", 2)])
+def test_old_leaf_records_still_read(engine: str, version: int) -> None:
+    """Leaf records of file version 2 (records 1 and 2) decode to the same leaves."""
+    config = dataclasses.replace(CONFIG, online=dataclasses.replace(CONFIG.online, engine=engine))
+    m = OnlineMap(config)
     m.insert_scans(_scans()[:2])
+    codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)
     for _, leaf in m.leaves():
-        blob = encode_leaf(leaf)
-        head = struct.Struct("<4sBBxxqqqqqq")
-        fields = list(head.unpack_from(blob))
-        fields[1] = 1  # version 1: the header, then the arrays, no counts block
-        old = head.pack(*fields) + blob[head.size + 8 :]
-        back = decode_leaf(old)
-        assert back.counts.shape == (2, 0)
-        assert encode_leaf(back) == blob
+        back = decode_leaf(_old_record(leaf, version), codec, grid)
+        assert encode_leaf(back, codec) == encode_leaf(leaf, codec)
+
+
+def _as_version_2(path: Path, meta_clear_scans: int | None) -> None:
+    """Rewrite a map file's meta as file version 2 wrote it: derived fields left out,
+    the engines' settings in ``online``, and ``clear_scans`` pinned in its own row."""
+    import json
+
+    con = sqlite3.connect(path)
+    stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
+    online = stored["online"]
+    for name in ("leaf_depth", "learn_scans", "clear_scans"):
+        online.pop(name, None)
+    lattice, exact = stored.pop("lattice"), stored.pop("exact")
+    for name in ("inducing_spacing", "max_inducing_per_axis", "clear_margin"):
+        lattice.pop(name, None)
+    online.update(lattice, **exact, prune_free=0.1192, prune_occupied=0.971)
+    online.update(kernel_cache_mb=64.0, max_inducing_per_axis=0)
+    stored["learning"].update(balance_classes=False, min_noise_variance=0.01)
+    stored["training"].pop("free_margin", None)
+    con.execute("UPDATE meta SET value = ? WHERE key = 'config'", (json.dumps(stored),))
+    con.execute("UPDATE meta SET value = '2' WHERE key = 'version'")
+    if meta_clear_scans is not None:
+        con.execute("INSERT INTO meta VALUES ('clear_scans', ?)", (str(meta_clear_scans),))
+    con.commit()
+    con.close()
+
+
+def test_a_map_file_stores_its_resolved_config_whole(tmp_path: Path) -> None:
+    """Every derived default is written, so the file does not depend on the code's defaults."""
+    import json
+
+    path = tmp_path / "m.octolgp"
+    with OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP), path=path) as m:
+        m.insert_scans(_scans()[:2])
+    con = sqlite3.connect(path)
+    stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
+    con.close()
+    assert stored["online"]["leaf_depth"] == 12
+    assert stored["online"]["learn_scans"] == 40
+    assert stored["online"]["clear_scans"] == 5
+    assert stored["lattice"]["inducing_spacing"] == 0.3
+    assert stored["lattice"]["max_inducing_per_axis"] == 12
+    assert stored["lattice"]["clear_margin"] == pytest.approx(0.5)
+    assert stored["training"]["free_margin"] == 0.1
+    assert MapConfig.from_dict(stored) == m.config == CONFIG.resolve()
+
+
+def test_a_reopened_map_keeps_its_config_when_the_defaults_change(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A file written under one set of defaults reopens identically under another."""
+    from octolgp import config as config_module
+
+    path = tmp_path / "m.octolgp"
+    with OnlineMap(CONFIG, path=path) as m:
+        m.insert_scans(_scans()[:4])
+        before, config = _values(m), m.config
+        probe = np.random.default_rng(0).uniform(-5, 5, (200, 2))
+        p_before = m.occupancy(probe)
+    changed = {(2, "lattice"): 3, (2, "exact"): 3, (3, "lattice"): 1, (3, "exact"): 2}
+    monkeypatch.setattr(config_module, "LEAF_VOXELS_LOG2", changed)
+    monkeypatch.setattr(config_module, "DEFAULT_CLEAR_SCANS", 9)
+    monkeypatch.setattr(config_module, "CLEAR_MARGIN_VOXELS", 2)
+    monkeypatch.setattr(config_module, "DEFAULT_LEARN_SCANS", {2: 7, 3: 2})
+    monkeypatch.setattr(config_module, "DEFAULT_INDUCING_SPACING", {2: 0.5, 3: 0.7})
+    monkeypatch.setattr(config_module, "DEFAULT_MAX_INDUCING", {2: 6, 3: 3})
+    assert CONFIG.resolve() != config  # the code's defaults did change
+    with OnlineMap.open(path) as m:
+        assert m.config == config
+        assert _values(m) == before
+        np.testing.assert_array_equal(m.occupancy(probe), p_before)
+        m.insert_scan(_scans()[4])  # and it goes on mapping by its own rules
+        assert m.config.clear_scans == 5
+
+
+def test_a_version_2_map_file_reopens_as_it_did(tmp_path: Path) -> None:
+    """A file of the previous layout (derived fields dropped) reopens with today's resolution."""
+    path = tmp_path / "v2.octolgp"
+    with OnlineMap(CONFIG, path=path) as m:
+        m.insert_scans(_scans()[:3])
+        before = _values(m)
+    _as_version_2(path, meta_clear_scans=5)
+    with OnlineMap.open(path) as m:
+        assert m.config == CONFIG.resolve()
+        assert _values(m) == before
+        m.insert_scan(_scans()[3])
+    con = sqlite3.connect(path)  # a write brings the file to today's version
+    assert con.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0] == "3"
+    con.close()
 
 
 def test_a_map_file_from_before_newer_evidence_won_reopens_static(tmp_path: Path) -> None:
-    """Files without the resolved ``clear_scans`` hold static counts and keep that rule."""
+    """Files without a resolved ``clear_scans`` hold static counts and keep that rule."""
     path = tmp_path / "static.octolgp"
     with OnlineMap(CONFIG, path=path) as m:
         m.insert_scans(_scans()[:3])
         assert m.config.clear_scans == 5
     with OnlineMap.open(path) as m:  # a file of today keeps its rule and its config
-        assert m.config == CONFIG
-    con = sqlite3.connect(path)
-    con.execute("DELETE FROM meta WHERE key = 'clear_scans'")
-    con.commit()
-    con.close()
+        assert m.config == CONFIG.resolve()
+    _as_version_2(path, meta_clear_scans=None)
     with OnlineMap.open(path) as m:
         assert m.config.online.clear_scans == 0
 
@@ -275,6 +392,7 @@ def test_a_map_file_from_before_the_lattice_engine_reopens_exact(tmp_path: Path)
     with OnlineMap(exact, path=path) as m:
         m.insert_scans(_scans()[:3])
         before = _values(m)
+    _as_version_2(path, meta_clear_scans=0)
     con = sqlite3.connect(path)
     stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
     del stored["online"]["engine"]
@@ -285,4 +403,9 @@ def test_a_map_file_from_before_the_lattice_engine_reopens_exact(tmp_path: Path)
         assert m.config.online.engine == "exact"
         assert _values(m) == before
         m.insert_scan(_scans()[3])  # and it goes on mapping with its engine
-        assert all(leaf.counts.size == 0 for _, leaf in m.leaves())
+        assert all(type(leaf.evidence).__name__ == "ExactEvidence" for _, leaf in m.leaves())
+
+
+def evidence_bytes(leaf: Leaf) -> tuple[bytes, ...]:
+    """Every array of a leaf's engine evidence, as bytes."""
+    return tuple(a.tobytes() for a in evidence_arrays(leaf.evidence))

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from octolgp import MapConfig, Scan
+from octolgp import LatticeConfig, MapConfig, Scan
+from octolgp.engines.lattice import LatticeEvidence
 from octolgp.observations import advance, merge_observations, observe
 
 
@@ -118,11 +119,13 @@ def test_a_lattice_leaf_keeps_the_first_return_of_each_voxel_it_sees_occupied() 
     side, halo = m.grid.side, m.grid.halo_voxels
     box = side + 2 * halo
     for _, leaf in m.leaves():
-        assert leaf.hit_keys.size == np.count_nonzero(leaf.counts[0])
-        for key, point in zip(leaf.hit_keys.tolist(), leaf.hits, strict=True):
+        ev = leaf.evidence
+        assert isinstance(ev, LatticeEvidence)
+        assert ev.hit_keys.size == np.count_nonzero(ev.counts[0])
+        for key, point in zip(ev.hit_keys.tolist(), ev.hits, strict=True):
             np.testing.assert_array_equal(point, first[key])  # the first, in time order
             local = np.floor(point / 0.2).astype(int) + (1 << 15) - (leaf.index * side - halo)
-            assert leaf.counts[0, local @ box ** np.arange(2)] > 0
+            assert ev.counts[0, local @ box ** np.arange(2)] > 0
 
 
 def _flicker_scans(rng: np.random.Generator, dim: int, n: int) -> list[Scan]:
@@ -219,7 +222,12 @@ def test_frees_near_a_return_are_weak() -> None:
     from octolgp.config import OnlineConfig
     from octolgp.geometry.keys import pack_keys
 
-    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(clear_scans=4, clear_margin=0.35))
+    config = MapConfig(
+        dim=2,
+        resolution=0.1,
+        online=OnlineConfig(clear_scans=4),
+        lattice=LatticeConfig(clear_margin=0.35),
+    )
     # beam 0 ends at x = 3.05 (a return); beam 1 passes just above it to a return at 5.05;
     # beam 2 is a no-return along y = -0.15
     scan = Scan(

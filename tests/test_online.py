@@ -11,7 +11,9 @@ import pytest
 from sklearn.metrics import roc_auc_score
 
 from octolgp import (
+    ExactConfig,
     Hyperparameters,
+    LatticeConfig,
     MapConfig,
     OctolgpError,
     OnlineConfig,
@@ -19,6 +21,8 @@ from octolgp import (
     Scan,
     build_map,
 )
+from octolgp.engines.base import evidence_arrays
+from octolgp.engines.exact import ExactEvidence
 from octolgp.errors import MapFileNotFound
 from octolgp.geometry.boxes import clip_to_box
 from octolgp.gp.plsc import occupancy_probability
@@ -40,16 +44,16 @@ def room_scan(origin: tuple[float, float], n: int = 90, size: float = 4.0) -> Sc
     return Scan(origin=o, points=o + t[:, None] * d)
 
 
-def config2d(**online: object) -> MapConfig:
+def config2d(exact: ExactConfig | None = None, **online: object) -> MapConfig:
     return MapConfig(
         dim=2,
         resolution=0.1,
         hyperparameters=HP,
         online=OnlineConfig(**online),  # type: ignore[arg-type]
+        exact=exact or ExactConfig(),
     )
 
 
-EVIDENCE = ("hits", "hit_keys", "free_start", "free_end", "counts")
 LATTICE_TOLERANCE = 1e-6
 """The lattice engine fits many leaves per BLAS call; a leaf fitted in another batch may
 round differently, so two lattice maps of the same scans agree to a few float32 ulps in
@@ -63,8 +67,7 @@ def assert_same_map(a: OnlineMap, b: OnlineMap) -> None:
     exact = a.config.online.engine == "exact"
     for k, x in la.items():
         y = lb[k]
-        for name in EVIDENCE:
-            assert getattr(x, name).tobytes() == getattr(y, name).tobytes(), (k, name)
+        assert evidence_bytes(x) == evidence_bytes(y), k
         assert x.pruned == y.pruned
         for name in ("mean", "var", "prob"):
             if exact:
@@ -77,8 +80,11 @@ def assert_same_map(a: OnlineMap, b: OnlineMap) -> None:
 
 def snapshot(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
     """Every stored array of every leaf, as bytes."""
-    fields = ("hits", "free_start", "free_end", "counts", "mean", "var", "prob")
-    return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
+    fields = ("mean", "var", "prob")
+    return {
+        k: (*evidence_bytes(leaf), *(getattr(leaf, f).tobytes() for f in fields))
+        for k, leaf in m.leaves()
+    }
 
 
 # ---------------------------------------------------------------- leaf geometry
@@ -147,16 +153,16 @@ def test_voxel_index_inverts_voxel_centres() -> None:
 
 
 def test_leaf_keeps_first_item_per_voxel() -> None:
-    leaf = Leaf.empty(np.array([1, 2]))
+    ev = ExactEvidence.empty(2)
     pts = np.array([[0.01, 0.01], [0.02, 0.02], [0.5, 0.5]])
     keys = np.array([7, 7, 9])
-    leaf, added = leaf.with_evidence(pts, keys, pts[:0], pts[:0], keys[:0])
+    ev, added = ev.extended(pts, keys, pts[:0], pts[:0], keys[:0])
     assert added == 2
-    assert np.array_equal(leaf.hits, pts[[0, 2]])
-    new, added = leaf.with_evidence(pts, keys, pts, pts + 1, keys)
+    assert np.array_equal(ev.hits, pts[[0, 2]])
+    new, added = ev.extended(pts, keys, pts, pts + 1, keys)
     assert added == 2  # only the free ones are new
-    assert leaf.free_start.shape[0] == 0  # a new leaf: the old one is unchanged
-    assert new.with_evidence(pts, keys, pts, pts + 1, keys) == (new, 0)
+    assert ev.free_start.shape[0] == 0  # new evidence: the old one is unchanged
+    assert new.extended(pts, keys, pts, pts + 1, keys) == (new, 0)
 
 
 # ---------------------------------------------------------------- updates
@@ -240,13 +246,15 @@ def test_a_static_revisit_settles_when_newer_evidence_wins() -> None:
 def test_evidence_per_leaf_is_bounded_by_its_voxels() -> None:
     rng = np.random.default_rng(3)
     # exact engine: the bound is on its hits and free pieces (lattice leaves keep counts)
-    m = OnlineMap(config2d(max_leaf_items=10_000, engine="exact"))
+    m = OnlineMap(config2d(ExactConfig(max_leaf_items=10_000), engine="exact"))
     for _ in range(30):
         m.insert_scan(room_scan(tuple(rng.uniform(-3, 3, 2)), n=180, size=4.0))
     halo_voxels = int(np.ceil(m.grid.side * (1 + 2 * m.grid.halo)) + 1) ** 2
     for _, leaf in m.leaves():
-        assert np.unique(leaf.hit_keys).size == leaf.hit_keys.size <= halo_voxels
-        assert np.unique(leaf.free_keys).size == leaf.free_keys.size <= 4 * halo_voxels
+        ev = leaf.evidence
+        assert isinstance(ev, ExactEvidence)
+        assert np.unique(ev.hit_keys).size == ev.hit_keys.size <= halo_voxels
+        assert np.unique(ev.free_keys).size == ev.free_keys.size <= 4 * halo_voxels
 
 
 @pytest.mark.parametrize("engine", ENGINES)
@@ -263,7 +271,7 @@ def test_threads_give_identical_maps(engine: str) -> None:
 def test_leaf_over_the_cap_is_split_by_kmeans() -> None:
     # exact engine: max_leaf_items and the k-means split are its own (lattice leaves never split)
     scans = [room_scan((x, 0.0), n=360) for x in (-3.0, -2.8)]
-    small = OnlineMap(config2d(max_leaf_items=40, engine="exact"))
+    small = OnlineMap(config2d(ExactConfig(max_leaf_items=40), engine="exact"))
     small.insert_scans(scans)
     big = OnlineMap(config2d(engine="exact"))
     big.insert_scans(scans)
@@ -419,24 +427,13 @@ def test_bad_queries_raise(points: object, field: str) -> None:
         ({"halo": 0.5}, "halo"),
         ({"halo": -0.1}, "halo"),
         ({"leaf_depth": 0}, "leaf_depth"),
-        ({"max_leaf_items": 1}, "max_leaf_items"),
-        ({"prune_free": 0.6}, "prune_free"),
         ({"n_jobs": 0}, "n_jobs"),
         ({"prune": 1}, "prune"),
         ({"engine": "fast"}, "engine"),
-        ({"evidence_cap": 0}, "evidence_cap"),
-        ({"evidence_cap": 256}, "evidence_cap"),
-        ({"free_weight": 0.0}, "free_weight"),
-        ({"free_weight": float("nan")}, "free_weight"),
-        ({"inducing_spacing": -1.0}, "inducing_spacing"),
-        ({"max_inducing_per_axis": 1}, "max_inducing_per_axis"),
-        ({"max_inducing_per_axis": 17}, "max_inducing_per_axis"),
         ({"clear_scans": -1}, "clear_scans"),
         ({"clear_scans": 256}, "clear_scans"),
         ({"clear_scans": 2.0}, "clear_scans"),
         ({"clear_scans": 3, "engine": "exact"}, "clear_scans"),
-        ({"clear_margin": -0.1}, "clear_margin"),
-        ({"clear_margin": float("inf")}, "clear_margin"),
     ],
 )
 def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:
@@ -444,12 +441,33 @@ def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:
         OnlineConfig(**kwargs)  # type: ignore[arg-type]
 
 
+@pytest.mark.parametrize(
+    ("section", "kwargs", "field"),
+    [
+        (ExactConfig, {"max_leaf_items": 1}, "ExactConfig.max_leaf_items"),
+        (ExactConfig, {"free_voxels": 0}, "ExactConfig.free_voxels"),
+        (LatticeConfig, {"evidence_cap": 0}, "LatticeConfig.evidence_cap"),
+        (LatticeConfig, {"evidence_cap": 256}, "LatticeConfig.evidence_cap"),
+        (LatticeConfig, {"free_weight": 0.0}, "LatticeConfig.free_weight"),
+        (LatticeConfig, {"free_weight": float("nan")}, "LatticeConfig.free_weight"),
+        (LatticeConfig, {"inducing_spacing": -1.0}, "LatticeConfig.inducing_spacing"),
+        (LatticeConfig, {"max_inducing_per_axis": 1}, "LatticeConfig.max_inducing_per_axis"),
+        (LatticeConfig, {"max_inducing_per_axis": 17}, "LatticeConfig.max_inducing_per_axis"),
+        (LatticeConfig, {"clear_margin": -0.1}, "LatticeConfig.clear_margin"),
+        (LatticeConfig, {"clear_margin": float("inf")}, "LatticeConfig.clear_margin"),
+    ],
+)
+def test_bad_engine_config(section: type, kwargs: dict[str, object], field: str) -> None:
+    with pytest.raises(OctolgpError, match=field):
+        section(**kwargs)
+
+
 def test_clear_scans_defaults_by_engine() -> None:
     assert MapConfig().clear_scans == 5
     assert MapConfig(online=OnlineConfig(engine="exact")).clear_scans == 0
     assert MapConfig(online=OnlineConfig(clear_scans=0)).clear_scans == 0
     assert MapConfig(resolution=0.2).clear_margin == pytest.approx(1.0)
-    assert MapConfig(online=OnlineConfig(clear_margin=0.0)).clear_margin == 0.0
+    assert MapConfig(lattice=LatticeConfig(clear_margin=0.0)).clear_margin == 0.0
 
 
 def test_leaf_depth_beyond_tree_depth_is_refused() -> None:
@@ -526,7 +544,7 @@ def test_map_file_round_trip(tmp_path, engine: str) -> None:  # type: ignore[no-
     with OnlineMap.open(path) as back:
         assert back.n_scans == 2
         assert back.hyperparameters == HP
-        assert back.config == config2d(engine=engine)
+        assert back.config == config2d(engine=engine).resolve()
         assert snapshot(back) == want
         assert np.array_equal(back.occupancy(probe), prob)
         back.insert_scan(room_scan((0.0, 1.0)))  # keeps writing through
@@ -584,21 +602,19 @@ def test_coarser_free_voxels_keep_fewer_pieces() -> None:
     # exact engine: free_voxels thins its free pieces (lattice leaves keep counts)
     scans = [room_scan((x, 0.2 * x), n=180) for x in (-2.0, 0.0, 2.0)]
     fine = OnlineMap(config2d(engine="exact"))
-    coarse = OnlineMap(config2d(free_voxels=3, engine="exact"))
+    coarse = OnlineMap(config2d(ExactConfig(free_voxels=3), engine="exact"))
     fine.insert_scans(scans)
     coarse.insert_scans(scans)
-    n_fine = sum(leaf.free_start.shape[0] for _, leaf in fine.leaves())
-    n_coarse = sum(leaf.free_start.shape[0] for _, leaf in coarse.leaves())
+    n_fine = sum(leaf.evidence.free_start.shape[0] for _, leaf in fine.leaves())  # type: ignore[attr-defined]
+    n_coarse = sum(leaf.evidence.free_start.shape[0] for _, leaf in coarse.leaves())  # type: ignore[attr-defined]
     assert n_coarse < 0.6 * n_fine
     for key, leaf in coarse.leaves():  # hits are untouched by the free-piece rule
-        assert np.array_equal(leaf.hit_keys, fine.store.get(key).hit_keys)  # type: ignore[union-attr]
-    with pytest.raises(OctolgpError, match="free_voxels"):
-        OnlineConfig(free_voxels=0)
+        assert np.array_equal(leaf.evidence.hit_keys, fine.store.get(key).evidence.hit_keys)  # type: ignore[attr-defined, union-attr]
 
 
 def test_free_weight_default_and_round_trip() -> None:
-    assert OnlineConfig().free_weight == 0.06
-    given = MapConfig(dim=2, online=OnlineConfig(free_weight=0.5))
+    assert LatticeConfig().free_weight == 0.06
+    given = MapConfig(dim=2, lattice=LatticeConfig(free_weight=0.5))
     for config in (MapConfig(dim=2), MapConfig(dim=3), given):
         assert MapConfig.from_dict(config.to_dict()) == config
 
@@ -612,7 +628,7 @@ def test_free_weight_changes_the_lattice_map() -> None:
     probe = np.array([[1.5, 0.0]])
     probs = []
     for weight in (0.06, 0.3, 1.0):
-        cfg = MapConfig(dim=2, hyperparameters=hp, online=OnlineConfig(free_weight=weight))
+        cfg = MapConfig(dim=2, hyperparameters=hp, lattice=LatticeConfig(free_weight=weight))
         with OnlineMap(cfg) as m:
             m.insert_scan(scan)
             probs.append(float(m.occupancy(probe)[0]))
@@ -641,3 +657,8 @@ def test_free_looks_count_up_to_clear_scans() -> None:
         once = float(m.occupancy(probe)[0])
         m.insert_scan(scan)
         assert float(m.occupancy(probe)[0]) == once
+
+
+def evidence_bytes(leaf: Leaf) -> tuple[bytes, ...]:
+    """Every array of a leaf's engine evidence, as bytes."""
+    return tuple(a.tobytes() for a in evidence_arrays(leaf.evidence))

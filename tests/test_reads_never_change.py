@@ -18,6 +18,8 @@ import numpy as np
 import pytest
 
 from octolgp import MapConfig, OnlineMap, Scan
+from octolgp.engines.base import evidence_arrays
+from octolgp.mapping.store import Leaf
 
 N_SCANS = 43
 CONFIG = MapConfig(dim=2, resolution=0.1)
@@ -47,8 +49,11 @@ def office_scans(n: int = N_SCANS) -> list[Scan]:
 
 def values(m: OnlineMap) -> dict[int, tuple[bytes, ...]]:
     """Every stored array of every leaf, as bytes."""
-    fields = ("hits", "free_start", "free_end", "counts", "mean", "var", "prob")
-    return {k: tuple(getattr(leaf, f).tobytes() for f in fields) for k, leaf in m.leaves()}
+    fields = ("mean", "var", "prob")
+    return {
+        k: (*evidence_bytes(leaf), *(getattr(leaf, f).tobytes() for f in fields))
+        for k, leaf in m.leaves()
+    }
 
 
 @pytest.fixture(scope="module")
@@ -182,3 +187,8 @@ def test_a_killed_map_reopens_as_the_uninterrupted_map(
         assert (m.hyperparameters, values(m)) == reference[k - 1]
         m.insert_scans(scans[k:])
         assert (m.hyperparameters, values(m)) == reference[-1]
+
+
+def evidence_bytes(leaf: Leaf) -> tuple[bytes, ...]:
+    """Every array of a leaf's engine evidence, as bytes."""
+    return tuple(a.tobytes() for a in evidence_arrays(leaf.evidence))

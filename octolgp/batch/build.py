@@ -26,7 +26,7 @@ from octolgp.gp.clusters import fit_clusters
 from octolgp.gp.learning import learn_from_clusters
 from octolgp.gp.quadrature import QuadratureSet, cluster_items, quadrature_spacing
 from octolgp.gp.regression import LocalGP, fit_local_gp
-from octolgp.mapping.fit import batch_bounds
+from octolgp.mapping.evidence import batch_bounds
 from octolgp.mapping.online import OnlineMap
 from octolgp.partition import Cluster, partition
 from octolgp.scan import FloatArray, Scan

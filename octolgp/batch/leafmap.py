@@ -28,9 +28,10 @@ from typing import Any
 
 from octolgp.batch.dask import dask_client
 from octolgp.config import Hyperparameters, MapConfig
+from octolgp.engines import LeafFit, engine_for
 from octolgp.errors import OctolgpError
 from octolgp.gp.learning import learn_hyperparameters
-from octolgp.mapping.fit import LeafFit, LeafFitter, batch_bounds, fit_leaves
+from octolgp.mapping.evidence import LeafFitter, batch_bounds
 from octolgp.mapping.online import OnlineMap
 from octolgp.mapping.store import Leaf
 from octolgp.scan import Scan
@@ -48,7 +49,7 @@ def fit_leaves_task(leaves: list[Leaf], config: MapConfig, hp: Hyperparameters) 
     from threadpoolctl import threadpool_limits
 
     with threadpool_limits(limits=1):
-        return fit_leaves(leaves, config, hp)
+        return engine_for(config).fit(leaves, hp, reuse=False)
 
 
 def build_tiled(

@@ -11,9 +11,9 @@ import numpy as np
 
 from octolgp.batch.build import build_map
 from octolgp.config import MapConfig
+from octolgp.engines import LeafFit
 from octolgp.errors import OctolgpError
 from octolgp.gp.plsc import latent_occupancy
-from octolgp.mapping.fit import LeafFit
 from octolgp.mapping.online import OnlineMap
 from octolgp.mapping.store import Leaf
 from octolgp.scan import Scan

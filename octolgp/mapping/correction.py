@@ -1,6 +1,6 @@
 """Corrected poses: validate rigid transforms, move scans, find what a correction touches.
 
-The pure half of :meth:`octolgp.mapping.online.OnlineMap.correct_scans`. A correction
+What :meth:`octolgp.mapping.online.OnlineMap.correct_scans` computes before it writes. A correction
 maps a scan's number (from 1, as in ``ScanUpdate.scan``) to a rigid transform, a
 ``(d+1, d+1)`` homogeneous matrix ``T = [[R, t], [0, 1]]`` applied to the scan's
 world-frame origin and points (``p' = R p + t``). The map then rebuilds exactly the
@@ -11,12 +11,16 @@ whose extent reaches them (:func:`scan_extents`, :func:`overlapping_scans`).
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
+from octolgp.engines.base import LeafEngine
 from octolgp.errors import OctolgpError
+from octolgp.geometry.keys import unpack_keys
 from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.store import MapStorage
 from octolgp.scan import FloatArray, Scan
 
 RIGID_TOLERANCE = 1e-6
@@ -157,3 +161,91 @@ def overlapping_scans(extents: IntArray, leaves: IntArray, grid: LeafGrid) -> ND
         meets = np.logical_and(e[:, None, 0] <= hi[None], e[:, None, 1] >= lo[None])
         hit[a : a + step] = np.any(np.all(meets, axis=2), axis=1)
     return hit
+
+
+class JournalExtents:
+    """Each journaled scan's extent in voxel keys, (n_scans, 2, d), kept up to date.
+
+    Read from the journal on the first correction, then extended as scans are journaled,
+    so a later correction reads only the scans that reach what it moves.
+    """
+
+    def __init__(self, grid: LeafGrid) -> None:
+        self.grid = grid
+        self._boxes: IntArray | None = None
+
+    def read(self, storage: MapStorage, n_scans: int) -> IntArray:
+        """The extents of the ``n_scans`` journaled scans (read once, a copy)."""
+        if self._boxes is None or self._boxes.shape[0] != n_scans:
+            boxes = [scan_extents([s], self.grid) for s in storage.scans()]
+            d = self.grid.dim
+            self._boxes = np.concatenate(boxes) if boxes else np.zeros((0, 2, d), np.int64)
+        return self._boxes.copy()
+
+    def journaled(self, scans: list[Scan]) -> None:
+        """Add the extents of newly journaled scans (once the extents have been read)."""
+        if self._boxes is not None and scans:
+            self._boxes = np.concatenate([self._boxes, scan_extents(scans, self.grid)])
+
+    def replace(self, extents: IntArray) -> None:
+        """The extents after a correction."""
+        self._boxes = extents
+
+
+@dataclass(frozen=True)
+class Replay:
+    """What a correction rebuilds.
+
+    Attributes
+    ----------
+    affected : list of int
+        Packed keys of the leaves either version of a corrected scan reaches, ascending.
+    scans : list of Scan
+        Every journaled scan whose extent reaches them, corrected, in time order.
+    extents : ndarray of int64, shape (n_scans, 2, d)
+        The journal's extents after the correction.
+    """
+
+    affected: list[int]
+    scans: list[Scan]
+    extents: IntArray
+
+
+def plan_replay(
+    storage: MapStorage,
+    extents: IntArray,
+    old: Mapping[int, Scan],
+    new: Mapping[int, Scan],
+    engine: LeafEngine,
+    stats: dict[str, float],
+) -> Replay:
+    """The leaves a correction reaches and the scans to rebuild them from (reads only).
+
+    Parameters
+    ----------
+    storage : MapStorage
+        The map file holding the journal.
+    extents : ndarray of int64, shape (n_scans, 2, d)
+        The journal's extents before the correction (:class:`JournalExtents`).
+    old, new : mapping of int to Scan
+        The corrected scans before and after, by number.
+    engine : LeafEngine
+        The map's engine (which leaves a scan's evidence reaches).
+    stats : dict of str to float
+        Stage seconds, accumulated.
+    """
+    grid = engine.grid
+    reach = engine.evidence([*old.values(), *new.values()], lambda _: None, stats)
+    affected = sorted(reach.touched)
+    corrected = moved_extents(extents, new, grid)
+    index = unpack_keys(np.asarray(affected, dtype=np.int64), grid.dim)
+    near = (np.flatnonzero(overlapping_scans(corrected, index, grid)) + 1).tolist()
+    journal = storage.read_scans(near)
+    return Replay(affected, [new.get(i, journal[i]) for i in near], corrected)
+
+
+def moved_extents(extents: IntArray, new: Mapping[int, Scan], grid: LeafGrid) -> IntArray:
+    """The journal's extents with the scans ``new`` (by number, from 1) in their place."""
+    out = extents.copy()
+    out[np.array(list(new), dtype=np.int64) - 1] = scan_extents(list(new.values()), grid)
+    return out

@@ -266,3 +266,21 @@ def assign_segments(
     a, b, keep = clip_to_box(start[seg], end[seg], lo, hi)
     keep &= np.linalg.norm(b - a, axis=1) > min_piece
     return seg[keep], cells[keep], a[keep], b[keep]
+
+
+def group_keys(packed: IntArray) -> tuple[IntArray, IntArray, IntArray]:
+    """Sort order, unique values and run bounds of packed keys.
+
+    Returns
+    -------
+    order : ndarray of shape (n,)
+        Stable sort order of ``packed``.
+    keys : ndarray of shape (u,)
+        The distinct keys, ascending.
+    bounds : ndarray of shape (u + 1,)
+        Key ``keys[j]`` holds ``order[bounds[j]:bounds[j + 1]]``.
+    """
+    order = np.argsort(packed, kind="stable")
+    s = packed[order]
+    starts = np.flatnonzero(np.r_[True, s[1:] != s[:-1]]) if s.size else np.zeros(0, np.int64)
+    return order, s[starts], np.append(starts, s.size).astype(np.int64)

@@ -4,77 +4,59 @@
 :meth:`OnlineMap.insert_scan` computes first and writes once, as OctoMap's
 ``computeUpdate`` then ``updateNode``:
 
-1. **Scan → training data**: a hit and a free segment per beam
-   (:func:`octolgp.training.make_training_data`).
-2. **Training data → leaves**: a hit goes to every leaf whose halo box holds it; a
-   free segment is clipped to the halo box of every leaf it crosses
-   (:func:`octolgp.mapping.evidence.gather_evidence`).
-3. **Bounded evidence**: a leaf keeps the first hit per voxel and the first free
-   piece per voxel of the piece's end (:meth:`octolgp.mapping.store.Leaf.with_evidence`).
-   Its training set is therefore at most two items per voxel of its halo box, so
-   revisiting a place costs nothing once its voxels are observed: a scan that
-   brings no new voxel to a leaf leaves that leaf's GP and voxels as they were.
-   This is exact for a static world; a changing world keeps its first state.
-   Because the rule is "first in time order", inserting scans one by one gives
-   bit-for-bit the map of inserting them all at once.
-4. **Leaves → local GP → PLSC**: a touched leaf that gained items is refitted
-   (:func:`octolgp.mapping.fit.fit_leaf`: one GP on its whole training set, or the
-   paper's iterative k-means clusters when it holds more than
-   ``OnlineConfig.max_leaf_items``); its voxel centres get latent mean, variance and
-   P(occupied); a leaf all below ``prune_free`` or all above ``prune_occupied``
-   keeps one value.
-5. **Store → file → sink**: the new leaves are swapped into the store
-   (:meth:`octolgp.mapping.store.LeafStore.apply`, the only writer), written to the
-   map file in one transaction, and reported to the sink.
+1. **Scan → evidence per leaf**: the leaf engine turns the scan into observations and
+   adds them to every leaf whose halo box they reach
+   (:meth:`octolgp.engines.base.LeafEngine.evidence`). The default lattice engine
+   counts, per voxel of a leaf's halo box, the scans that saw it occupied and free, and
+   newer evidence wins (:func:`octolgp.observations.newer_evidence_wins`); the exact
+   engine keeps the first hit and free piece per voxel. Either way a leaf's evidence is
+   bounded by its halo box and is a function of the scans in time order, so inserting
+   scans one by one gives the map of inserting them all at once.
+2. **Leaves → local GP → PLSC**: the leaves whose GP inputs changed are refitted and
+   their voxels re-predicted (:meth:`~octolgp.engines.base.LeafEngine.fit`); a confident
+   leaf keeps one value.
+3. **Store → file → sink**: the one write path (:meth:`OnlineMap._write`) swaps the new
+   leaves into the store (:class:`octolgp.mapping.store.LeafStore`, the only mutable
+   state), writes the map file in one transaction, and reports to the sink.
 
-Hyperparameters are those of ``MapConfig.hyperparameters``. When it is ``None`` the
-first ``MapConfig.learn_scans`` scans (40 in 2D, 5 in 3D) are buffered, the hyperparameters are
-learnt on them (:func:`octolgp.gp.learning.learn_hyperparameters`) and then held
-fixed. The map after k scans is a function of those k scans and the config only:
-queries, :meth:`~OnlineMap.save`, :meth:`~OnlineMap.export_octomap`,
-:meth:`~OnlineMap.voxels`, opening and closing never learn. While scans are
-buffered, reads answer *provisionally* (:attr:`OnlineMap.provisional`): from a map
-fitted on the buffered scans with hyperparameters learnt on them, computed for the
-read and thrown away (kept only until the next insert). :meth:`OnlineMap.flush` is
-the one explicit way to learn early. To re-learn later, call
-:meth:`OnlineMap.relearn`: every leaf is refitted from its stored evidence.
+Hyperparameters are those of ``MapConfig.hyperparameters``; when it is ``None`` the
+first ``online.learn_scans`` scans are buffered and learnt on
+(:class:`octolgp.mapping.bootstrap.Bootstrap`). The map after k scans is a function of
+those k scans and the config only: queries, :meth:`~OnlineMap.save`,
+:meth:`~OnlineMap.export_octomap`, opening and closing never change it.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Iterable, Iterator, Mapping
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
-import numpy as np
 from numpy.typing import ArrayLike
-from threadpoolctl import ThreadpoolController
 
 from octolgp.config import Hyperparameters, MapConfig
+from octolgp.engines import LeafFit, engine_for
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import unpack_keys
 from octolgp.gp.learning import learn_hyperparameters
-from octolgp.mapping.cache import KernelCache
+from octolgp.mapping.bootstrap import Bootstrap
 from octolgp.mapping.correction import (
+    JournalExtents,
     check_corrections,
-    overlapping_scans,
-    scan_extents,
+    moved_extents,
+    plan_replay,
     transform_scan,
 )
-from octolgp.mapping.evidence import check_scan, gather_batch, step_evidence
-from octolgp.mapping.fit import LeafFit, LeafFitter, batch_bounds, fit_leaves
+from octolgp.mapping.evidence import LeafFitter, batch_bounds, check_scan, gather_batch
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads
 from octolgp.mapping.store import Leaf, LeafStore, MapStorage
 from octolgp.mapping.update import ScanUpdate
+from octolgp.mapping.workers import Workers
 from octolgp.scan import Scan
 from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
-from octolgp.training import make_training_data
 
 __all__ = ["OnlineMap", "ScanUpdate"]
 
@@ -95,7 +77,8 @@ class OnlineMap(MapReads):
     Parameters
     ----------
     config : MapConfig, optional
-        ``MapConfig()`` when omitted.
+        ``MapConfig()`` when omitted. The map keeps it resolved
+        (:meth:`MapConfig.resolve`) as :attr:`config`.
     path : str or Path, optional
         With a path the map is persisted in that SQLite file (which must not
         exist yet) after every :meth:`insert_scan`; see :mod:`octolgp.persist.mapfile`.
@@ -144,31 +127,23 @@ class OnlineMap(MapReads):
             config = MapConfig()
         if not isinstance(config, MapConfig):
             raise OctolgpError(f"config must be a MapConfig, got {type(config).__name__}")
-        self.config = config
-        self.grid = LeafGrid.from_config(config)
-        budget = config.memory_budget_mb
+        self.config = config.resolve()
+        self.grid = LeafGrid.from_config(self.config)
+        self.engine = engine_for(self.config)
+        budget = self.config.memory_budget_mb
         self.store = LeafStore(None if budget is None else int(budget * 1e6))
-        self.hyperparameters: Hyperparameters | None = config.hyperparameters
+        self.hyperparameters: Hyperparameters | None = self.config.hyperparameters
         self.n_scans = 0
         self.repaired = 0  # kernel matrices repaired by jitter in this map's fits
         self.build_stats: dict[str, float] = {}
-        cache_mb = config.online.kernel_cache_mb
-        self.kernel_cache = None if cache_mb == 0 else KernelCache(int(cache_mb * 1e6))
         if recording is not None and sink is None:
             from octolgp.sinks.rerun import RerunSink
 
             sink = RerunSink(recording)
         self.sink: Sink = NullSink() if sink is None else sink
-        self._buffer: list[Scan] = []  # scans awaiting the hyperparameters
-        self._provisional: tuple[int, OnlineMap] | None = None  # a read's throw-away fit
-        self._pool: ThreadPoolExecutor | None = None
-        self._blas: ThreadpoolController | None = None
-        self._extents: np.ndarray | None = None  # journaled scans' key boxes, once corrected
-        # Evidence is deduplicated per leaf (Leaf.with_evidence), in time order, so a
-        # scan-level dedup would only make one-by-one and all-at-once insertion differ.
-        self._raw_config = dataclasses.replace(
-            config, training=dataclasses.replace(config.training, dedup=False)
-        )
+        self._bootstrap: Bootstrap[OnlineMap] = Bootstrap(self.config)
+        self._workers = Workers(self.config.n_jobs)
+        self._extents = JournalExtents(self.grid)
         self._file: MapStorage | None = storage
         if storage is not None:
             self._resume(storage)
@@ -177,9 +152,9 @@ class OnlineMap(MapReads):
 
             # without a path, a memory budget spills evicted leaves to a temporary file
             self._file = (
-                MapFile.create(path, config, self.hyperparameters)
+                MapFile.create(path, self.config, self.hyperparameters)
                 if path is not None
-                else MapFile.spill(config)
+                else MapFile.spill(self.config)
             )
             self.store.attach(self._file, [])
 
@@ -190,12 +165,14 @@ class OnlineMap(MapReads):
         self.n_scans = header.n_scans
         self.store.attach(storage, header.leaf_keys)
         if self.hyperparameters is None and not header.leaf_keys:
-            self._buffer = list(storage.scans())  # still collecting scans to learn from
+            self._bootstrap = Bootstrap(self.config, storage.scans())  # still collecting
 
     # ------------------------------------------------------------------ life cycle
     @classmethod
     def open(cls, path: str | Path) -> OnlineMap:
         """Reopen a map persisted with ``OnlineMap(config, path=...)`` or :meth:`save`.
+
+        The map uses the config stored in the file, whatever this code's defaults are.
 
         Raises
         ------
@@ -217,20 +194,18 @@ class OnlineMap(MapReads):
         """
         from octolgp.persist.mapfile import write_map
 
-        journal = self._file.scans() if self._file is not None else iter(self._buffer)
+        journal = self._file.scans() if self._file is not None else iter(self._bootstrap.scans)
         write_map(
             path, self.config, self.hyperparameters, self.n_scans, self.store.items(), journal
         )
 
     def close(self) -> None:
         """Release worker threads and the map file."""
-        if self._pool is not None:
-            self._pool.shutdown()
-            self._pool = None
+        self._workers.close()
         if self._file is not None:
             self._file.close()
             self._file = None
-        self._provisional = None
+        self._bootstrap = Bootstrap(self.config, self._bootstrap.scans)
 
     def __enter__(self) -> OnlineMap:
         return self
@@ -253,7 +228,9 @@ class OnlineMap(MapReads):
 
         A map without a file keeps only the scans it is still buffering.
         """
-        return self._file.scans() if self._file is not None else iter(list(self._buffer))
+        if self._file is not None:
+            return self._file.scans()
+        return iter(list(self._bootstrap.scans))
 
     @property
     def provisional(self) -> bool:
@@ -262,12 +239,12 @@ class OnlineMap(MapReads):
         Reads then answer from a provisional fit of the buffered scans that is thrown
         away; the map itself holds no leaves until the hyperparameters are learnt.
         """
-        return self.hyperparameters is None and bool(self._buffer)
+        return self.hyperparameters is None and len(self._bootstrap) > 0
 
     @property
     def buffered_scans(self) -> int:
         """Scans held back until the hyperparameters are learnt."""
-        return len(self._buffer)
+        return len(self._bootstrap)
 
     # ------------------------------------------------------------------ updates
     def insert_scan(self, scan: Scan) -> ScanUpdate:
@@ -294,14 +271,12 @@ class OnlineMap(MapReads):
         self.sink.on_scan(scan, index)
         if self.hyperparameters is not None:
             return self._step([scan], [(index, scan)], t0)
-        self._buffer.append(scan)
-        self._provisional = None
-        if len(self._buffer) >= self.config.learn_scans:
+        if self._bootstrap.add(scan):  # enough scans to learn on
             update = self._learn_and_step([(index, scan)], t0)
             if update is not None:
                 return update
         else:
-            self._commit([], [(index, scan)], index)
+            self._write([], journal=[(index, scan)], n_scans=index)
         return self._buffered_update(t0)
 
     def insert_scans(self, scans: Iterable[Scan]) -> list[ScanUpdate]:
@@ -315,60 +290,48 @@ class OnlineMap(MapReads):
         end of a run shorter than ``learn_scans``); reads never do. Returns ``None``
         when nothing is buffered or the buffer holds no training data yet.
         """
-        if not self._buffer:
+        if not len(self._bootstrap):
             return None
         return self._learn_and_step([], time.perf_counter())
 
     def _learn_and_step(self, journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate | None:
         """Learn on the buffer and insert it; ``None`` (still buffering) without data."""
-        if not self._can_learn():
+        if not self._bootstrap.can_learn():
             # nothing to learn from yet (no return, or every beam on its sensor): keep buffering
             if journal:
-                self._commit([], journal, journal[-1][0])
+                self._write([], journal=journal, n_scans=journal[-1][0])
             return None
         t1 = time.perf_counter()
-        hp = learn_hyperparameters(self._buffer, self.config)
+        hp = self._bootstrap.learn()
         learning = time.perf_counter() - t1
-        logger.info("learnt hyperparameters on %d scans: %s", len(self._buffer), hp)
+        logger.info("learnt hyperparameters on %d scans: %s", len(self._bootstrap), hp)
         self.hyperparameters = hp
-        buffered, self._buffer, self._provisional = self._buffer, [], None
-        update = self._step(buffered, journal, t0)
+        update = self._step(self._bootstrap.take(), journal, t0)
         update.stages["learning"] = learning
         return update
 
     def _step(self, scans: list[Scan], journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate:
-        """Scans → evidence per leaf → refit the leaves that gained any → store → file → sink."""
-        hp = self.hyperparameters
-        assert hp is not None
+        """Scans → evidence per leaf → refit the leaves whose GP inputs changed → write."""
         index = journal[-1][0] if journal else self.n_scans
         stages: dict[str, float] = {}
-        with self._blas_limit():
-            # 1-3. scan → training data → the leaves it changes (new leaf objects)
-            evidence = step_evidence(scans, self.grid, self._raw_config, self.store.get, stages)
-            # 4. leaves → local GP → PLSC, on the map's threads
-            t = time.perf_counter()
-            leaves = [leaf for _, leaf in evidence.changed]
-            fits = fit_leaves(leaves, self.config, hp, self.kernel_cache, self._threads(leaves))
-            stages["fit"] = time.perf_counter() - t
-        # 5. the one write: store, file, then the sink
+        # 1. scans → the engine's evidence → the leaves it changes (new leaf objects)
+        with self._workers.one_blas_thread():
+            evidence = self.engine.evidence(scans, self.store.get, stages)
+        # 2. leaves → local GP → PLSC, on the map's threads
+        fits = self._fit([leaf for _, leaf in evidence.changed], stages)
+        fitted = [(k, f.leaf) for (k, _), f in zip(evidence.changed, fits, strict=True)]
+        # 3. the one write: store, file, then the sink
         t = time.perf_counter()
-        keys = [k for k, _ in evidence.changed]
-        fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
-        self.store.apply([*fitted, *evidence.kept], evidence.touched, index)
-        self._commit(sorted([*keys, *(k for k, _ in evidence.kept)]), journal, index)
+        self._write(
+            [*fitted, *evidence.kept],
+            stamp=index,
+            touched=evidence.touched,
+            journal=journal,
+            n_scans=index,
+        )
         stages["store"] = time.perf_counter() - t
-        repaired = self._count_repairs(fits)
-        update = ScanUpdate(
-            scan=index,
-            touched_leaves=len(evidence.touched),
-            refit_leaves=len(keys),
-            new_items=evidence.new_items,
-            pruned_leaves=sum(f.leaf.pruned for f in fits),
-            seconds=time.perf_counter() - t0,
-            stages=stages,
-            n_leaves=len(self.store),
-            memory_bytes=self.memory_bytes(),
-            repaired=repaired,
+        update = self._update(
+            index, t0, stages, len(evidence.touched), fits, new_items=evidence.new_items
         )
         self.sink.on_update(update, self._change(fitted))
         return update
@@ -405,18 +368,56 @@ class OnlineMap(MapReads):
             a memory budget keeps no scans); the map is then unchanged.
         """
         t0 = time.perf_counter()
+        old, new = self._corrected_scans(corrections)
+        storage = self._file
+        assert storage is not None  # _corrected_scans refuses a map without a journal
+        extents = self._extents.read(storage, self.n_scans)  # read before any write
+        if self.hyperparameters is None:  # still buffering: only the journal moves
+            self._write([], corrected=list(new.items()))
+            self._bootstrap.corrected(new)
+            self._extents.replace(moved_extents(extents, new, self.grid))
+            return self._buffered_update(t0)
+        stages: dict[str, float] = {}
+        # 1. the leaves either version reaches, and every scan whose extent reaches them
+        with self._workers.one_blas_thread():
+            replay = plan_replay(storage, extents, old, new, self.engine, stages)
+            # 2. their evidence from nothing, the corrected scans replayed in time order
+            gathered, _, new_items = gather_batch(
+                replay.scans, self.engine, lambda _: None, CHUNK_BEAMS, stages
+            )
+        keys = [k for k in replay.affected if k in gathered]
+        removed = [k for k in replay.affected if k not in gathered and k in self.store]
+        leaves = [gathered[k] for k in keys]
+        del gathered
+        self.engine.rebuilt(replay.affected)
+        fits = self._fit(leaves, stages)
+        # 3. the one write: store, then the file in one transaction, then the sink
+        t = time.perf_counter()
+        fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
+        self._write(fitted, stamp=self.n_scans, removed=removed, corrected=list(new.items()))
+        self._extents.replace(replay.extents)
+        stages["store"] = time.perf_counter() - t
+        stages["replayed_scans"] = float(len(replay.scans))
+        update = self._update(
+            self.n_scans, t0, stages, len(replay.affected), fits, new_items, len(removed)
+        )
+        self.sink.on_update(update, self._change(fitted, tuple(removed)))
+        return update
+
+    def _corrected_scans(
+        self, corrections: Mapping[int, ArrayLike]
+    ) -> tuple[dict[int, Scan], dict[int, Scan]]:
+        """The journaled scans a correction moves, before and after (checked; reads only)."""
         transforms = check_corrections(corrections, self.n_scans, self.config.dim)
         if self._file is None:
             raise OctolgpError(
                 "correct_scans needs the scans' journal: make the map with a path "
                 "(OnlineMap(config, path=...)), which journals every scan"
             )
-        storage = self._file
-        stages: dict[str, float] = {}
-        old = storage.read_scans(list(transforms))
+        old = self._file.read_scans(list(transforms))
         if len(old) != len(transforms):
             raise OctolgpError(
-                f"map file {str(storage.path)!r} holds no journal of its scans (saved from "
+                f"map file {str(self._file.path)!r} holds no journal of its scans (saved from "
                 "memory); only a map made with a path can be corrected"
             )
         new = {i: transform_scan(old[i], T) for i, T in transforms.items()}
@@ -427,64 +428,7 @@ class OnlineMap(MapReads):
                 raise OctolgpError(
                     f"corrections[{i}] moves the scan out of the map: {exc}"
                 ) from None
-        extents = self._journal_extents(storage)  # read before any write
-        rows, moved_extents = np.array(list(new)) - 1, scan_extents(list(new.values()), self.grid)
-        if self.hyperparameters is None:  # still buffering: only the journal moves
-            storage.correct([], [], list(new.items()))
-            self._buffer = [new.get(i, scan) for i, scan in enumerate(self._buffer, start=1)]
-            self._provisional = None
-            extents[rows] = moved_extents
-            return self._buffered_update(t0)
-        hp = self.hyperparameters
-        with self._blas_limit():
-            # 1. the leaves either version of the corrected scans reaches
-            moved = [*old.values(), *new.values()]
-            reach = step_evidence(moved, self.grid, self._raw_config, lambda _: None, stages)
-            affected = sorted(reach.touched)
-            # 2. every scan whose extent reaches them, corrected, replayed in time order
-            corrected_extents = extents.copy()
-            corrected_extents[rows] = moved_extents
-            index = unpack_keys(np.asarray(affected, dtype=np.int64), self.config.dim)
-            near = np.flatnonzero(overlapping_scans(corrected_extents, index, self.grid)) + 1
-            journal = storage.read_scans(near.tolist())
-            replay = [new.get(i, journal[i]) for i in near.tolist()]
-            gathered, _, new_items = gather_batch(
-                replay, self.grid, self._raw_config, lambda _: None, CHUNK_BEAMS, stages
-            )
-            keys = [k for k in affected if k in gathered]
-            leaves = [gathered[k] for k in keys]
-            removed = [k for k in affected if k not in gathered and k in self.store]
-            del gathered
-            if self.kernel_cache is not None:  # rebuilt items are not the cached ones
-                self.kernel_cache.discard(affected)
-            t = time.perf_counter()
-            fits = fit_leaves(leaves, self.config, hp, self.kernel_cache, self._threads(leaves))
-            stages["fit"] = time.perf_counter() - t
-        # 3. the one write: store, then the file in one transaction, then the sink
-        t = time.perf_counter()
-        fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
-        self.store.apply(fitted, (), self.n_scans)
-        self.store.remove(removed)
-        written = storage.correct(fitted, removed, list(new.items()))
-        self.store.persisted(written)
-        self.store.trim()
-        extents[:] = corrected_extents
-        stages["store"] = time.perf_counter() - t
-        update = ScanUpdate(
-            scan=self.n_scans,
-            touched_leaves=len(affected),
-            refit_leaves=len(keys),
-            new_items=new_items,
-            pruned_leaves=sum(f.leaf.pruned for f in fits),
-            seconds=time.perf_counter() - t0,
-            stages={**stages, "replayed_scans": float(len(replay))},
-            n_leaves=len(self.store),
-            memory_bytes=self.memory_bytes(),
-            repaired=self._count_repairs(fits),
-            removed_leaves=len(removed),
-        )
-        self.sink.on_update(update, self._change(fitted, tuple(removed)))
-        return update
+        return old, new
 
     def insert_batch(
         self,
@@ -495,19 +439,19 @@ class OnlineMap(MapReads):
     ) -> ScanUpdate:
         """Insert many scans as one step: every touched leaf is fitted once.
 
-        The same map as inserting the scans one by one (the evidence rule is "first
-        in time order"), at a fraction of the cost for a whole log. Evidence is
-        gathered in chunks of about :data:`CHUNK_BEAMS` beams, and leaves are fitted,
-        stored and committed in batches, so transient memory is bounded by the chunk
-        and the batch, not the log.
+        The same map as inserting the scans one by one (each engine's evidence is a
+        function of the scans in time order), at a fraction of the cost for a whole
+        log. Evidence is gathered in chunks of about :data:`CHUNK_BEAMS` beams, and
+        leaves are fitted, stored and committed in batches, so transient memory is
+        bounded by the chunk and the batch, not the log.
 
         Parameters
         ----------
         scans : iterable of Scan
             World-frame scans of dimension ``config.dim``; at least one.
         fitter : callable, optional
-            Where the leaves are fitted (:data:`octolgp.mapping.fit.LeafFitter`): by
-            default on this map's threads; :func:`octolgp.batch.leafmap.build_tiled`
+            Where the leaves are fitted (:data:`octolgp.mapping.evidence.LeafFitter`):
+            by default on this map's threads; :func:`octolgp.batch.leafmap.build_tiled`
             passes one that runs batches on a Dask cluster. It decides where the work
             runs, never what is computed. With the default fitter and no
             hyperparameters yet, they are learnt first on the first ``learn_scans``
@@ -529,46 +473,45 @@ class OnlineMap(MapReads):
         new_scans = [check_scan(s, self.config, self.grid) for s in scans]
         if not new_scans:
             raise OctolgpError("scans: no scans to build from")
-        for i, s in enumerate(new_scans, start=self.n_scans + 1):
-            self.sink.on_scan(s, i)
         journal = list(enumerate(new_scans, start=self.n_scans + 1))
+        for i, s in journal:
+            self.sink.on_scan(s, i)
         index = journal[-1][0]
-        scan_list = new_scans
         stats: dict[str, float] = {"learning": 0.0}
+        scan_list = new_scans
         if self.hyperparameters is None and fitter is None:  # learn on the first scans
-            scan_list = self._buffer + new_scans
+            scan_list = self._bootstrap.take() + new_scans
             t = time.perf_counter()
             hp = learn_hyperparameters(scan_list[: self.config.learn_scans], self.config)
             stats["learning"] = time.perf_counter() - t
             logger.info("learnt hyperparameters on the first scans: %s", hp)
-            self.hyperparameters, self._buffer, self._provisional = hp, [], None
-        with self._blas_limit():
+            self.hyperparameters = hp
+        # 1. every scan's evidence, chunk by chunk in time order
+        with self._workers.one_blas_thread():
             gathered, refit, new_items = gather_batch(
-                scan_list, self.grid, self._raw_config, self.store.get, CHUNK_BEAMS, stats
+                scan_list, self.engine, self.store.get, CHUNK_BEAMS, stats
             )
         kept = [(k, leaf) for k, leaf in gathered.items() if k not in refit]
         if kept:  # new counts, same GP inputs: stored as they are
-            self.store.apply(kept, (), index)
-            self._commit([k for k, _ in kept], [], self.n_scans)
+            self._write(kept, stamp=index)
         keys = [k for k in gathered if k in refit]
         leaves = [gathered[k] for k in keys]
         del gathered, kept
+        # 2. fit in batches, each written (durable, then evictable) before the next
         t = time.perf_counter()
         pruned = repaired = done = 0
         run = self._local_fitter if fitter is None else fitter
         for group_k, group_f in run(keys, leaves):  # one batch of leaves per iteration
-            self.store.apply(
-                [(k, f.leaf) for k, f in zip(group_k, group_f, strict=True)], (), index
-            )
+            self._write([(k, f.leaf) for k, f in zip(group_k, group_f, strict=True)], stamp=index)
             pruned += sum(f.leaf.pruned for f in group_f)
             repaired += self._count_repairs(group_f)
-            self._commit(group_k, [], self.n_scans)  # each batch durable, then evictable
             done += len(group_k)
             if progress is not None:
                 progress(done, len(keys))
         stats["fit"] = time.perf_counter() - t
+        # 3. the journal and the scan count, last
         t = time.perf_counter()
-        self._commit([], journal, index)
+        self._write([], journal=journal, n_scans=index)
         stats["store"] = time.perf_counter() - t
         self.build_stats = {
             **stats,
@@ -596,15 +539,10 @@ class OnlineMap(MapReads):
     ) -> Iterator[tuple[list[int], list[LeafFit]]]:
         """Fit leaves on this map's threads in batches of about FIT_BATCH_ITEMS items.
 
-        Every leaf is fitted once here, so there are no kernel blocks worth caching.
+        Every leaf is fitted once here, so nothing is worth keeping for a later fit.
         """
-        hp = self.hyperparameters
-        assert hp is not None
         for lo, hi in batch_bounds([leaf.n_items for leaf in leaves], FIT_BATCH_ITEMS):
-            group = leaves[lo:hi]
-            with self._blas_limit():
-                fits = fit_leaves(group, self.config, hp, None, self._threads(group))
-            yield keys[lo:hi], fits
+            yield keys[lo:hi], self._fit(leaves[lo:hi], reuse=False)
 
     def relearn(self, scans: Iterable[Scan]) -> Hyperparameters:
         """Learn new hyperparameters on ``scans`` and refit every leaf with them."""
@@ -622,21 +560,99 @@ class OnlineMap(MapReads):
         if not isinstance(hp, Hyperparameters):
             raise OctolgpError(f"hp must be Hyperparameters, got {type(hp).__name__}")
         self.hyperparameters = hp
-        if self._buffer:
-            buffered, self._buffer, self._provisional = self._buffer, [], None
-            self._step(buffered, [], time.perf_counter())
+        if len(self._bootstrap):
+            self._step(self._bootstrap.take(), [], time.perf_counter())
         keys = list(self.store)
         for lo in range(0, len(keys), 256):  # one batch of leaves per iteration
             batch = [(k, leaf) for k in keys[lo : lo + 256] if (leaf := self.store.peek(k))]
-            with self._blas_limit():
-                leaves = [leaf for _, leaf in batch]
-                fits = fit_leaves(leaves, self.config, hp, self.kernel_cache, self._threads(leaves))
+            fits = self._fit([leaf for _, leaf in batch])
             self._count_repairs(fits)
-            fitted = [(k, f.leaf) for (k, _), f in zip(batch, fits, strict=True)]
-            self.store.apply(fitted)  # each leaf keeps its last-use stamp
-            self._commit([k for k, _ in fitted], [], self.n_scans)
+            self._write([(k, f.leaf) for (k, _), f in zip(batch, fits, strict=True)])
 
-    # ------------------------------------------------------------------ plumbing
+    # ------------------------------------------------------------------ the one write path
+    def _write(
+        self,
+        leaves: list[tuple[int, Leaf]],
+        *,
+        stamp: int | None = None,
+        touched: Iterable[int] = (),
+        journal: list[tuple[int, Scan]] | None = None,
+        n_scans: int | None = None,
+        removed: list[int] | None = None,
+        corrected: list[tuple[int, Scan]] | None = None,
+    ) -> None:
+        """Write one step's result: the store, then the map file in one transaction.
+
+        Parameters
+        ----------
+        leaves : list of (int, Leaf)
+            New or replaced leaves.
+        stamp : int, optional
+            Scan number stamped on ``leaves`` and ``touched`` (least-recently-used
+            order); ``None`` keeps their stamps.
+        touched : iterable of int
+            Leaves the step reached without changing.
+        journal : list of (int, Scan), optional
+            New journal rows.
+        n_scans : int, optional
+            The new scan count (``None``: unchanged).
+        removed : list of int, optional
+            Leaves left without evidence (a correction).
+        corrected : list of (int, Scan), optional
+            Journal rows rewritten (a correction).
+        """
+        journal, removed, corrected = journal or [], removed or [], corrected or []
+        self.store.apply(leaves, touched, stamp)
+        self.store.remove(removed)
+        if n_scans is not None:
+            self.n_scans = n_scans
+        self._extents.journaled([s for _, s in journal])
+        if self._file is not None:
+            if corrected or removed:
+                written = self._file.correct(leaves, removed, corrected)
+            else:
+                written = self._file.commit(leaves, journal, self.hyperparameters, self.n_scans)
+            self.store.persisted(written)
+        self.store.trim()
+
+    def _fit(
+        self, leaves: list[Leaf], stages: dict[str, float] | None = None, *, reuse: bool = True
+    ) -> list[LeafFit]:
+        """Fit leaves with the map's hyperparameters on its threads (``stages["fit"]``)."""
+        hp = self.hyperparameters
+        assert hp is not None
+        t = time.perf_counter()
+        with self._workers.one_blas_thread():
+            fits = self.engine.fit(leaves, hp, self._workers.pool(len(leaves)), reuse=reuse)
+        if stages is not None:
+            stages["fit"] = stages.get("fit", 0.0) + time.perf_counter() - t
+        return fits
+
+    def _update(
+        self,
+        scan: int,
+        t0: float,
+        stages: dict[str, float],
+        touched: int,
+        fits: list[LeafFit],
+        new_items: int,
+        removed: int = 0,
+    ) -> ScanUpdate:
+        """The record of a step that refitted ``fits``."""
+        return ScanUpdate(
+            scan=scan,
+            touched_leaves=touched,
+            refit_leaves=len(fits),
+            new_items=new_items,
+            pruned_leaves=sum(f.leaf.pruned for f in fits),
+            seconds=time.perf_counter() - t0,
+            stages=stages,
+            n_leaves=len(self.store),
+            memory_bytes=self.memory_bytes(),
+            repaired=self._count_repairs(fits),
+            removed_leaves=removed,
+        )
+
     def _buffered_update(self, t0: float) -> ScanUpdate:
         """The update of a step that only buffered or journaled scans (no leaf changed)."""
         return ScanUpdate(
@@ -650,46 +666,6 @@ class OnlineMap(MapReads):
             n_leaves=len(self.store),
             memory_bytes=self.memory_bytes(),
         )
-
-    def _journal_extents(self, storage: MapStorage) -> np.ndarray:
-        """Each journaled scan's extent in voxel keys, (n_scans, 2, d), kept up to date.
-
-        Read from the journal once (the first correction), then extended as scans are
-        committed: a correction then reads only the scans that reach what it moves.
-        """
-        if self._extents is None or self._extents.shape[0] != self.n_scans:
-            boxes = [scan_extents([s], self.grid) for s in storage.scans()]
-            d = self.config.dim
-            self._extents = np.concatenate(boxes) if boxes else np.zeros((0, 2, d), np.int64)
-        return self._extents
-
-    def _commit(self, keys: list[int], journal: list[tuple[int, Scan]], n_scans: int) -> None:
-        """Set the scan count, make the step durable (map file, if any), trim RAM."""
-        self.n_scans = n_scans
-        if self._extents is not None and journal:  # keep the correction index current
-            self._extents = np.concatenate(
-                [self._extents, scan_extents([s for _, s in journal], self.grid)]
-            )
-        if self._file is not None:
-            leaves = [(k, leaf) for k in keys if (leaf := self.store.get(k)) is not None]
-            written = self._file.commit(leaves, journal, self.hyperparameters, n_scans)
-            self.store.persisted(written)
-        self.store.trim()
-
-    def _threads(self, leaves: list[Leaf]) -> ThreadPoolExecutor | None:
-        """The map's thread pool when ``n_jobs > 1`` and there is more than one leaf."""
-        n_jobs = self.config.n_jobs
-        if n_jobs <= 1 or len(leaves) < 2:
-            return None
-        if self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=n_jobs)
-        return self._pool
-
-    def _blas_limit(self) -> Any:
-        """One BLAS thread per leaf fit: small matrices, parallelism is over leaves."""
-        if self._blas is None:  # finding the BLAS libraries is the slow part: once per map
-            self._blas = ThreadpoolController()
-        return self._blas.limit(limits=1)
 
     def _count_repairs(self, fits: list[LeafFit]) -> int:
         repaired = sum(f.repaired for f in fits)
@@ -732,23 +708,7 @@ class OnlineMap(MapReads):
         """
         if not self.provisional:
             return self
-        if self._provisional is None or self._provisional[0] != len(self._buffer):
-            self._provisional = (len(self._buffer), self._provisional_map())
-        return self._provisional[1]
-
-    def _provisional_map(self) -> OnlineMap:
-        """A throw-away in-memory map of the buffered scans (what :meth:`flush` would make)."""
-        if not self._can_learn():
-            return OnlineMap(dataclasses.replace(self.config, memory_budget_mb=None))
-        hp = learn_hyperparameters(self._buffer, self.config)
-        config = dataclasses.replace(self.config, hyperparameters=hp, memory_budget_mb=None)
-        provisional = OnlineMap(config)
-        provisional.insert_batch(self._buffer)
-        return provisional
-
-    def _can_learn(self) -> bool:
-        """Whether the buffered scans hold training data to learn from."""
-        return make_training_data(self._buffer, self._raw_config).n_items > 0
+        return self._bootstrap.provisional(_provisional_map)
 
     def memory_bytes(self) -> int:
         """Bytes held by the leaves (evidence and voxel values)."""
@@ -759,3 +719,11 @@ class OnlineMap(MapReads):
             f"OnlineMap(dim={self.config.dim}, resolution={self.config.resolution:g}, "
             f"scans={self.n_scans}, leaves={len(self.store)})"
         )
+
+
+def _provisional_map(config: MapConfig, scans: list[Scan]) -> OnlineMap:
+    """A throw-away in-memory map of buffered scans (what :meth:`OnlineMap.flush` would make)."""
+    provisional = OnlineMap(config)
+    if scans:
+        provisional.insert_batch(scans)
+    return provisional

@@ -20,8 +20,7 @@ from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import addressable_mask, addressable_range
 from octolgp.gp.plsc import latent_occupancy
-from octolgp.mapping.evidence import group_keys
-from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.grid import LeafGrid, group_keys
 from octolgp.mapping.store import Leaf, LeafStore
 from octolgp.scan import FloatArray, as_points
 

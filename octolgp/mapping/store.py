@@ -1,11 +1,10 @@
 """The map store: one mutable table of leaves keyed by packed OctoMap keys.
 
-A :class:`Leaf` holds its training evidence (hits and clipped free pieces, each
-tagged with the packed key of its voxel) and its predicted voxels (latent mean,
-variance and P(occupied), float32). The evidence is bounded by construction: a
-leaf keeps the *first* hit per voxel and the *first* free piece per voxel of the
-piece's end, so its training set can never exceed two items per voxel of its halo
-box, however often the robot comes back (see :mod:`octolgp.mapping.online`).
+A :class:`Leaf` holds its predicted voxels (latent mean, variance and P(occupied),
+float32) and its engine's evidence (:class:`LeafEvidence`: the lattice engine's
+observation counts, or the exact engine's hits and free pieces; see
+:mod:`octolgp.engines`). Each engine bounds its evidence per voxel of the leaf's
+halo box, so a leaf does not grow however often the robot comes back.
 
 :class:`LeafStore` is the one mutable structure of an online map; everything
 around it is a pure function.
@@ -13,7 +12,6 @@ around it is a pure function.
 
 from __future__ import annotations
 
-import dataclasses
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
@@ -23,7 +21,6 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from octolgp.scan import FloatArray
 from octolgp.training import IntArray
 
 if TYPE_CHECKING:
@@ -33,31 +30,30 @@ if TYPE_CHECKING:
 Float32Array = NDArray[np.float32]
 
 
-def _new_first(existing: IntArray, keys: IntArray) -> IntArray:
-    """Indices of ``keys`` whose value is not in ``existing`` nor earlier in ``keys``."""
-    _, first = np.unique(keys, return_index=True)
-    first = np.sort(first)
-    if existing.size:
-        first = first[~np.isin(keys[first], existing)]
-    return first.astype(np.int64)
+class LeafEvidence(Protocol):
+    """What a leaf engine keeps of the observations of one leaf (immutable)."""
+
+    @property
+    def n_items(self) -> int:
+        """Training inputs of the leaf's GP."""
+        ...
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the evidence's arrays."""
+        ...
 
 
 @dataclass
 class Leaf:
-    """One leaf of the map: its evidence and its predicted voxels.
+    """One leaf of the map: its engine's evidence and its predicted voxels.
 
     Attributes
     ----------
     index : ndarray of shape (d,)
         Leaf index per axis (a voxel key shifted right by the leaf's level).
-    hits : ndarray of shape (h, d)
-        Hit points in the halo box, metres, world frame.
-    hit_keys : ndarray of shape (h,)
-        Packed voxel key of each hit.
-    free_start, free_end : ndarray of shape (s, d)
-        Free pieces clipped to the halo box, metres, world frame.
-    free_keys : ndarray of shape (s,)
-        Packed voxel key of each piece's end.
+    evidence : LeafEvidence
+        The engine's evidence of the leaf's halo box.
     mean, var, prob : ndarray of float32, shape (V,) or (1,)
         Latent mean, latent variance and P(occupied) per voxel, in flat voxel
         order (x fastest), or one value for a pruned leaf. Empty before the first fit.
@@ -70,12 +66,7 @@ class Leaf:
     """
 
     index: IntArray
-    hits: FloatArray
-    hit_keys: IntArray
-    free_start: FloatArray
-    free_end: FloatArray
-    free_keys: IntArray
-    counts: NDArray[np.uint8] = field(default_factory=lambda: np.zeros((2, 0), np.uint8))
+    evidence: LeafEvidence
     mean: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
     var: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
     prob: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
@@ -83,23 +74,10 @@ class Leaf:
     refits: int = 0
     touched: int = 0
 
-    @classmethod
-    def empty(cls, index: IntArray) -> Leaf:
-        """A leaf with no evidence yet."""
-        d = int(np.asarray(index).size)
-        return cls(
-            index=np.asarray(index, dtype=np.int64).copy(),
-            hits=np.zeros((0, d)),
-            hit_keys=np.zeros(0, dtype=np.int64),
-            free_start=np.zeros((0, d)),
-            free_end=np.zeros((0, d)),
-            free_keys=np.zeros(0, dtype=np.int64),
-        )
-
     def evolve(self, **changes: object) -> Leaf:
         """A shallow copy with ``changes`` applied.
 
-        ``dataclasses.replace`` without its per-field cost, which dominated 3D inserts
+        ``dataclasses.replace`` without its per-field cost, which dominates 3D inserts
         touching thousands of leaves. Unknown field names raise ``TypeError``.
         """
         unknown = changes.keys() - _LEAF_FIELDS
@@ -111,70 +89,19 @@ class Leaf:
 
     @property
     def n_items(self) -> int:
-        """Training items: hits plus free pieces, or observed (voxel, class) pairs."""
-        return int(self.hits.shape[0] + self.free_start.shape[0] + np.count_nonzero(self.counts))
+        """Training inputs of the leaf's GP (its evidence's)."""
+        return self.evidence.n_items
 
     @property
     def nbytes(self) -> int:
         """Bytes held by the leaf's arrays."""
-        arrays = (
-            self.index,
-            self.hits,
-            self.hit_keys,
-            self.free_start,
-            self.free_end,
-            self.free_keys,
-            self.counts,
-            self.mean,
-            self.var,
-            self.prob,
-        )
-        return sum(a.nbytes for a in arrays)
-
-    def with_evidence(
-        self,
-        hits: FloatArray,
-        hit_keys: IntArray,
-        free_start: FloatArray,
-        free_end: FloatArray,
-        free_keys: IntArray,
-    ) -> tuple[Leaf, int]:
-        """The leaf with the hits and pieces whose voxel it has no item of that class in.
-
-        Parameters
-        ----------
-        hits : ndarray of shape (h, d)
-            Candidate hits, metres, world frame, in time order.
-        hit_keys : ndarray of shape (h,)
-            Packed voxel key of each hit.
-        free_start, free_end : ndarray of shape (s, d)
-            Candidate free pieces (clipped to the halo box), in time order.
-        free_keys : ndarray of shape (s,)
-            Packed voxel key of each piece's end.
-
-        Returns
-        -------
-        leaf : Leaf
-            A new leaf (this one is not modified); ``self`` when nothing was added.
-        added : int
-            Number of items added (0 means the leaf's GP would not change).
-        """
-        new_h = _new_first(self.hit_keys, hit_keys)
-        new_f = _new_first(self.free_keys, free_keys)
-        if not new_h.size and not new_f.size:
-            return self, 0
-        leaf = self.evolve()
-        if new_h.size:
-            leaf.hits = np.concatenate([self.hits, hits[new_h]])
-            leaf.hit_keys = np.concatenate([self.hit_keys, hit_keys[new_h]])
-        if new_f.size:
-            leaf.free_start = np.concatenate([self.free_start, free_start[new_f]])
-            leaf.free_end = np.concatenate([self.free_end, free_end[new_f]])
-            leaf.free_keys = np.concatenate([self.free_keys, free_keys[new_f]])
-        return leaf, int(new_h.size + new_f.size)
+        values = self.index.nbytes + self.mean.nbytes + self.var.nbytes + self.prob.nbytes
+        return values + self.evidence.nbytes
 
 
-_LEAF_FIELDS = frozenset(f.name for f in dataclasses.fields(Leaf))
+_LEAF_FIELDS = frozenset(
+    ("index", "evidence", "mean", "var", "prob", "pruned", "refits", "touched")
+)
 
 
 class LeafBacking(Protocol):

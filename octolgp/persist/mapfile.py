@@ -3,12 +3,14 @@
 Tables
 ------
 ``meta(key TEXT PRIMARY KEY, value TEXT)``
-    ``format`` (``"octolgp-map"``), ``version``, ``config`` (JSON of
-    :meth:`MapConfig.to_dict`), ``hyperparameters`` (JSON or ``null``), ``n_scans``.
+    ``format`` (``"octolgp-map"``), ``version``, ``config`` (JSON of the resolved
+    :meth:`MapConfig.to_dict`: every derived default filled in, so the file means the
+    same whatever defaults the code that opens it has), ``hyperparameters`` (JSON or
+    ``null``), ``n_scans``.
 ``leaves(key INTEGER PRIMARY KEY, data BLOB)``
     One row per leaf, keyed by its packed OctoMap key; ``data`` is the leaf in the
-    compact encoding of :func:`encode_leaf` (a fixed header, then the raw arrays:
-    evidence in float64, voxel values in float32).
+    encoding of :func:`encode_leaf` (a fixed header, the voxel values in float32, then
+    the engine's evidence record, :meth:`octolgp.engines.base.LeafEngine.encode`).
 ``scans(idx INTEGER PRIMARY KEY, dim, origin BLOB, points BLOB, max_range, stamp)``
     The journal of inserted scans, float64, in insertion order (empty in a file
     saved from an in-memory map, which keeps no scans).
@@ -41,53 +43,80 @@ from typing import Any
 import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
+from octolgp.engines import engine_for
+from octolgp.engines.base import LeafEngine, read_arrays
+from octolgp.engines.exact import ExactEvidence
+from octolgp.engines.lattice import LatticeEvidence
 from octolgp.errors import MapFileNotFound, OctolgpError
-from octolgp.mapping.store import Leaf, MapHeader
+from octolgp.geometry.keys import pack_keys
+from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.store import Leaf, LeafEvidence, MapHeader
 from octolgp.scan import Scan
 
 FORMAT = "octolgp-map"
-VERSION = 2
+VERSION = 3
+READABLE_VERSIONS = ("2", "3")
+"""File versions this code opens (2: before the engines owned their leaf records)."""
 _SQLITE_MAGIC = b"SQLite format 3\x00"
-_HEADER = struct.Struct("<4sBBxxqqqqqq")  # magic, version, dim, h, s, v, pruned, refits, touched
+_HEADER = struct.Struct("<4sBBxxqqqq")  # magic, version, dim, values, pruned, refits, touched
+_OLD_HEADER = struct.Struct("<4sBBxxqqqqqq")  # records 1 and 2: h, s, v, pruned, refits, touched
 _LEAF_MAGIC = b"OLGL"
+_RECORD = 3
+_COUNTS = struct.Struct("<q")  # record 2: halo voxels of the count arrays
 
 
-_COUNTS = struct.Struct("<q")  # record version 2: halo voxels of the count arrays
+def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
+    """A leaf as bytes: a header, its index and voxel values, then its engine's evidence.
 
-
-def encode_leaf(leaf: Leaf) -> bytes:
-    """A leaf as bytes: a 56-byte header, then its arrays back to back (little-endian).
-
-    Record version 2 adds the lattice engine's counts (8 bytes: their length ``H``,
-    then ``2 H`` bytes) after the header; version 1 records (no counts) still read.
+    Little-endian: the 40-byte header (magic, record version, dimension, number of
+    voxel values, pruned, refits, touched), the index (int64), mean, variance and
+    P(occupied) (float32), then :meth:`LeafEngine.encode` of the evidence.
     """
-    d = int(leaf.index.size)
-    h, s, v = leaf.hits.shape[0], leaf.free_start.shape[0], leaf.prob.size
-    head = _HEADER.pack(_LEAF_MAGIC, 2, d, h, s, v, int(leaf.pruned), leaf.refits, leaf.touched)
-    parts = [
+    d, v = int(leaf.index.size), leaf.prob.size
+    head = _HEADER.pack(_LEAF_MAGIC, _RECORD, d, v, int(leaf.pruned), leaf.refits, leaf.touched)
+    parts = (
         leaf.index.astype("<i8"),
-        leaf.hits.astype("<f8"),
-        leaf.hit_keys.astype("<i8"),
-        leaf.free_start.astype("<f8"),
-        leaf.free_end.astype("<f8"),
-        leaf.free_keys.astype("<i8"),
         leaf.mean.astype("<f4"),
         leaf.var.astype("<f4"),
         leaf.prob.astype("<f4"),
-        np.ascontiguousarray(leaf.counts, dtype=np.uint8),
-    ]
-    counts = _COUNTS.pack(leaf.counts.shape[1])
-    return head + counts + b"".join(p.tobytes() for p in parts)
+    )
+    return head + b"".join(p.tobytes() for p in parts) + engine.encode(leaf.evidence)
 
 
-def decode_leaf(blob: bytes) -> Leaf:
-    """Inverse of :func:`encode_leaf`; raises ``OctolgpError`` on a corrupt blob."""
+def decode_leaf(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
+    """Inverse of :func:`encode_leaf` (records 1 and 2 too); ``OctolgpError`` if corrupt."""
+    if len(blob) < 5:
+        raise OctolgpError("leaf record is truncated")
+    if blob[:4] != _LEAF_MAGIC:
+        raise OctolgpError("leaf record has a bad header")
+    if blob[4] in (1, 2):
+        return _decode_old(blob, engine, grid)
     if len(blob) < _HEADER.size:
         raise OctolgpError("leaf record is truncated")
-    magic, version, d, h, s, v, pruned, refits, touched = _HEADER.unpack_from(blob)
-    if magic != _LEAF_MAGIC or version not in (1, 2) or d not in (2, 3) or min(h, s, v) < 0:
+    _, version, d, v, pruned, refits, touched = _HEADER.unpack_from(blob)
+    if version != _RECORD or d not in (2, 3) or v < 0:
         raise OctolgpError("leaf record has a bad header")
-    at = _HEADER.size
+    at = _HEADER.size + 8 * d + 12 * v
+    if len(blob) < at:
+        raise OctolgpError("leaf record is truncated")
+    specs = [(d, "<i8"), (v, "<f4"), (v, "<f4"), (v, "<f4")]
+    index, mean, var, prob = read_arrays(blob[:at], _HEADER.size, specs)
+    evidence = engine.decode(blob[at:], d)
+    return Leaf(index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched))
+
+
+def _decode_old(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
+    """A record 1 or 2 leaf (both engines' arrays in one record) as the engine's leaf.
+
+    A lattice leaf written before returns kept their positions gets its returns at its
+    occupied voxels' centres, as such leaves were fitted.
+    """
+    if len(blob) < _OLD_HEADER.size:
+        raise OctolgpError("leaf record is truncated")
+    _, version, d, h, s, v, pruned, refits, touched = _OLD_HEADER.unpack_from(blob)
+    if d not in (2, 3) or min(h, s, v) < 0:
+        raise OctolgpError("leaf record has a bad header")
+    at = _OLD_HEADER.size
     n_counts = 0
     if version == 2:
         if len(blob) < at + _COUNTS.size:
@@ -96,32 +125,42 @@ def decode_leaf(blob: bytes) -> Leaf:
         at += _COUNTS.size
         if n_counts < 0:
             raise OctolgpError("leaf record has a bad header")
-    sizes = [(d, "<i8"), (h * d, "<f8"), (h, "<i8"), (s * d, "<f8"), (s * d, "<f8")]
-    sizes += [(s, "<i8"), (v, "<f4"), (v, "<f4"), (v, "<f4"), (2 * n_counts, "u1")]
-    need = at + sum(n * np.dtype(t).itemsize for n, t in sizes)
-    if len(blob) != need:
-        raise OctolgpError(f"leaf record has {len(blob)} bytes, expected {need}")
-    out = []
-    for n, t in sizes:  # ten arrays
-        arr = np.frombuffer(blob, dtype=t, count=n, offset=at)
-        out.append(arr.astype(np.dtype(t).newbyteorder("=")))
-        at += n * arr.itemsize
-    index, hits, hit_keys, fs, fe, free_keys, mean, var, prob, counts = out
-    return Leaf(
-        index=index,
-        hits=hits.reshape(h, d),
-        hit_keys=hit_keys,
-        free_start=fs.reshape(s, d),
-        free_end=fe.reshape(s, d),
-        free_keys=free_keys,
-        counts=counts.reshape(2, n_counts),
-        mean=mean,
-        var=var,
-        prob=prob,
-        pruned=bool(pruned),
-        refits=int(refits),
-        touched=int(touched),
-    )
+    specs = [(d, "<i8"), (h * d, "<f8"), (h, "<i8"), (s * d, "<f8"), (s * d, "<f8")]
+    specs += [(s, "<i8"), (v, "<f4"), (v, "<f4"), (v, "<f4"), (2 * n_counts, "u1")]
+    index, hits, hit_keys, fs, fe, free_keys, mean, var, prob, counts = read_arrays(blob, at, specs)
+    hits = hits.reshape(h, d)
+    evidence: LeafEvidence
+    if isinstance(engine.empty(d), ExactEvidence):
+        evidence = ExactEvidence(hits, hit_keys, fs.reshape(s, d), fe.reshape(s, d), free_keys)
+    else:
+        counts = counts.reshape(2, n_counts)
+        occupied = np.flatnonzero(counts[0])
+        if hit_keys.size != occupied.size:  # returns at their voxels' centres
+            box = grid.side + 2 * grid.halo_voxels
+            local = np.stack(np.unravel_index(occupied, (box,) * d, order="F"), axis=1)
+            keys = index * grid.side - grid.halo_voxels + local
+            hit_keys = pack_keys(keys)
+            hits = ((keys - (1 << (grid.tree_depth - 1)) + 0.5) * grid.resolution).astype(float)
+        evidence = LatticeEvidence(counts, hit_keys, hits)
+    return Leaf(index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched))
+
+
+def stored_config(stored: dict[str, Any], clear_scans: str | None) -> MapConfig:
+    """The resolved config of a map file from its ``config`` JSON.
+
+    Files of version 3 store the resolved config whole. Older ones dropped derived
+    fields: their engine is ``"exact"`` when absent (files from before the lattice
+    engine) and their ``clear_scans`` the ``clear_scans`` meta row (0 where absent,
+    files from before forgetting); the other derived fields take the defaults they had
+    when those files were written, which are today's.
+    """
+    online = stored.setdefault("online", {})
+    online.setdefault("engine", "exact")
+    if "clear_scans" not in online:
+        written = int(clear_scans or "0")
+        if MapConfig.from_dict(stored).clear_scans != written:
+            online["clear_scans"] = written
+    return MapConfig.from_dict(stored).resolve()
 
 
 def _scan_row(index: int, scan: Scan) -> tuple[Any, ...]:
@@ -189,6 +228,8 @@ class MapFile:
         self._con = con
         self.header = header
         self.temporary = temporary
+        self._engine = engine_for(header.config)
+        self._grid = LeafGrid.from_config(header.config)
 
     # ------------------------------------------------------------------ create / open
     @classmethod
@@ -209,6 +250,8 @@ class MapFile:
             If ``path`` exists or cannot be created.
         """
         p = Path(path)
+        config = config.resolve()
+        engine = engine_for(config)
         if p.exists() and not temporary:
             raise OctolgpError(
                 f"path {str(p)!r} already exists; reopen it with OnlineMap.open or remove it"
@@ -230,11 +273,10 @@ class MapFile:
                     ("config", json.dumps(config.to_dict())),
                     ("hyperparameters", _hp_json(hyperparameters)),
                     ("n_scans", str(n_scans)),
-                    ("clear_scans", str(config.clear_scans)),  # the evidence rule, resolved
                 ]
                 con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
                 for k, leaf in leaves:  # one row per leaf
-                    con.execute("INSERT INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf)))
+                    con.execute("INSERT INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine)))
                     keys.append(k)
         except sqlite3.Error as exc:
             raise OctolgpError(f"path {str(p)!r}: cannot create the map file ({exc})") from None
@@ -273,19 +315,12 @@ class MapFile:
                 raise OctolgpError(f"map file {str(p)!r} is not an octolgp map") from None
             if meta.get("format") != FORMAT:
                 raise OctolgpError(f"map file {str(p)!r} is not an octolgp map")
-            if meta.get("version") != str(VERSION):
+            if meta.get("version") not in READABLE_VERSIONS:
                 raise OctolgpError(
-                    f"map file {str(p)!r} has version {meta.get('version')}, expected {VERSION}"
+                    f"map file {str(p)!r} has version {meta.get('version')}, expected "
+                    f"{' or '.join(READABLE_VERSIONS)}"
                 )
-            stored = json.loads(meta["config"])
-            # files from before the lattice engine hold the exact engine's leaves
-            stored.setdefault("online", {}).setdefault("engine", "exact")
-            config = MapConfig.from_dict(stored)
-            # files from before newer evidence won hold static counts: clear_scans 0
-            written = int(meta.get("clear_scans", "0"))
-            if "clear_scans" not in stored["online"] and written != config.clear_scans:
-                stored["online"]["clear_scans"] = written
-                config = MapConfig.from_dict(stored)
+            config = stored_config(json.loads(meta["config"]), meta.get("clear_scans"))
             hp_data = json.loads(meta["hyperparameters"])
             hp = None if hp_data is None else Hyperparameters(**hp_data)
             n_scans = int(meta["n_scans"])
@@ -312,7 +347,7 @@ class MapFile:
         if row is None:
             raise OctolgpError(f"map file {str(self.path)!r} lacks leaf {key}")
         try:
-            return decode_leaf(row[0])
+            return decode_leaf(row[0], self._engine, self._grid)
         except OctolgpError as exc:
             raise OctolgpError(f"map file {str(self.path)!r}, leaf {key}: {exc}") from None
 
@@ -359,13 +394,17 @@ class MapFile:
         Returns the keys written.
         """
         written = []
+        engine = self._engine
         with _Transaction(self._con) as con:
+            con.execute("UPDATE meta SET value=? WHERE key='version'", (str(VERSION),))
             con.executemany(
                 "INSERT INTO scans VALUES (?, ?, ?, ?, ?, ?)",
                 (_scan_row(i, s) for i, s in journal),
             )
             for k, leaf in leaves:  # one row per changed leaf
-                con.execute("INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf)))
+                con.execute(
+                    "INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine))
+                )
                 written.append(k)
             con.execute(
                 "UPDATE meta SET value=? WHERE key='hyperparameters'", (_hp_json(hyperparameters),)
@@ -385,7 +424,9 @@ class MapFile:
         and deletes the leaves ``removed``. Returns the leaf keys written.
         """
         written = []
+        engine = self._engine
         with _Transaction(self._con) as con:
+            con.execute("UPDATE meta SET value=? WHERE key='version'", (str(VERSION),))
             for i, s in journal:  # one row per corrected scan
                 row = _scan_row(i, s)
                 con.execute(
@@ -394,7 +435,9 @@ class MapFile:
                 )
             con.executemany("DELETE FROM leaves WHERE key=?", ((int(k),) for k in removed))
             for k, leaf in leaves:  # one row per rebuilt leaf
-                con.execute("INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf)))
+                con.execute(
+                    "INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine))
+                )
                 written.append(k)
         return written
 

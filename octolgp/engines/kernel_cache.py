@@ -1,4 +1,4 @@
-"""The kernel cache: a leaf's item covariance blocks, reused when it gains items.
+"""The exact engine's kernel cache: a leaf's item covariance blocks, reused as it gains items.
 
 A leaf's items are append-only (hits, then free pieces), so when a scan adds items
 only the new rows and columns of ``K`` and ``Ks`` need the kernel; the rest is
@@ -16,10 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from octolgp.config import Hyperparameters
-from octolgp.geometry.keys import pack_keys
 from octolgp.gp.kernels import item_covariance
 from octolgp.gp.quadrature import QuadratureSet, points_set
-from octolgp.mapping.store import Leaf
 from octolgp.scan import FloatArray
 
 
@@ -87,7 +85,9 @@ class KernelCache:
 
 
 def leaf_blocks(
-    leaf: Leaf,
+    packed: int,
+    n_hits: int,
+    n_free: int,
     items: QuadratureSet,
     centres: FloatArray,
     hp: Hyperparameters,
@@ -101,8 +101,7 @@ def leaf_blocks(
     distances, the kernel and the weighted sums over each item's nodes, in a fixed
     order), so the assembled blocks equal freshly computed ones bit for bit.
     """
-    packed = int(pack_keys(leaf.index[None, :])[0])
-    h, f = leaf.hits.shape[0], leaf.free_start.shape[0]
+    h, f = n_hits, n_free
     old = cache.get(packed)
     ls, sf2 = hp.length_scale, hp.signal_variance
     if old is None or old.key != key or old.n_hits > h or old.n_free > f:

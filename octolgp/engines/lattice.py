@@ -1,0 +1,349 @@
+"""The lattice leaf engine (the default): voxel observation counts, a shared inducing lattice.
+
+Each scan becomes voxel observations (:func:`octolgp.observations.observe`): per voxel,
+whether the scan saw it occupied (a return in it) and whether it saw it free (a free
+segment through it). A leaf keeps, per voxel of its halo box and class, a saturating
+count of the scans that saw it so (at most ``LatticeConfig.evidence_cap``; free looks up
+to ``OnlineConfig.clear_scans`` with forgetting on), updated by the newer-evidence rule
+(:func:`octolgp.observations.newer_evidence_wins`), and one measured return per voxel it
+sees occupied. The leaf's GP sees the returns at their positions and the free voxels at
+their centres, a free look weighing ``LatticeConfig.free_weight`` of a return
+(:func:`octolgp.observations.effective_counts`); it is a sparse GP on an inducing lattice
+whose kernel tables every leaf shares (:mod:`octolgp.gp.lattice`), so many leaves fit in a
+few matrix products. A leaf's counts are a function of the scans in time order, not of
+how they were grouped into steps, so inserting scans one by one gives the map of
+inserting them at once.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import struct
+import time
+from collections.abc import Iterable
+from concurrent.futures import Executor
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from octolgp.config import Hyperparameters, MapConfig
+from octolgp.engines.base import Evidence, LeafFit, Lookup, read_arrays, with_values
+from octolgp.errors import OctolgpError
+from octolgp.geometry.keys import pack_keys, unpack_keys
+from octolgp.gp.lattice import (
+    HitPoints,
+    LatticeGeometry,
+    LatticeTables,
+    inducing_per_axis,
+    lattice_posterior,
+    lattice_tables,
+)
+from octolgp.gp.plsc import latent_occupancy
+from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.store import Leaf
+from octolgp.observations import VoxelObservations, advance, effective_counts, observe
+from octolgp.scan import FloatArray, Scan
+from octolgp.training import IntArray
+
+_SIZES = struct.Struct("<qq")  # halo voxels of the counts, kept returns
+
+
+@dataclass(frozen=True, slots=True)
+class LatticeEvidence:
+    """A leaf's observation counts per halo-box voxel and its kept returns.
+
+    Attributes
+    ----------
+    counts : ndarray of uint8, shape (2, H)
+        Per halo-box voxel (flat, x fastest): scans that saw it occupied (row 0) and
+        free (row 1), saturated.
+    hit_keys : ndarray of int64, shape (r,)
+        Packed voxel keys of the voxels holding a return, ascending.
+    hits : ndarray of shape (r, d)
+        The return kept for each of them, metres, world frame.
+    """
+
+    counts: NDArray[np.uint8]
+    hit_keys: IntArray
+    hits: FloatArray
+
+    @classmethod
+    def empty(cls, dim: int) -> LatticeEvidence:
+        """Nothing seen (counts of zero length: sized on the first observation)."""
+        return cls(np.zeros((2, 0), np.uint8), np.zeros(0, np.int64), np.zeros((0, dim)))
+
+    @property
+    def n_items(self) -> int:
+        """Observed (voxel, class) pairs."""
+        return int(np.count_nonzero(self.counts))
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the arrays."""
+        return self.counts.nbytes + self.hit_keys.nbytes + self.hits.nbytes
+
+
+def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
+    """The lattice engine's evidence of a leaf (raises ``TypeError`` on another engine's)."""
+    ev = leaf.evidence
+    if not isinstance(ev, LatticeEvidence):
+        raise TypeError(f"leaf holds {type(ev).__name__}, not the lattice engine's evidence")
+    return ev
+
+
+def _halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntArray, IntArray]:
+    """Every (observed voxel, leaf whose halo box holds it) pair.
+
+    Returns the voxel (index into ``obs``), the leaf index per axis and the voxel's flat
+    index in that leaf's halo box, per pair.
+    """
+    side, halo, d = grid.side, grid.halo_voxels, grid.dim
+    box = side + 2 * halo
+    keys = obs.keys
+    lo = (keys - halo) // side
+    hi = (keys + halo) // side
+    vox_parts, leaf_parts = [], []
+    for offset in itertools.product((0, 1), repeat=d):  # 4 or 8 neighbours
+        cand = lo + np.asarray(offset, dtype=np.int64)
+        ok = (cand <= hi).all(axis=1) & (cand >= 0).all(axis=1)
+        ok &= (cand < (1 << grid.leaf_depth)).all(axis=1)
+        vox_parts.append(np.flatnonzero(ok))
+        leaf_parts.append(cand[ok])
+    voxel = np.concatenate(vox_parts)
+    leaf_index = np.concatenate(leaf_parts)
+    local = keys[voxel] - (leaf_index * side - halo)
+    flat = local @ (box ** np.arange(d, dtype=np.int64))
+    return voxel, leaf_index, flat
+
+
+def gather_observations(
+    obs: VoxelObservations, grid: LeafGrid, config: MapConfig, lookup: Lookup
+) -> Evidence:
+    """Apply a step's voxel observations to the leaves whose halo boxes hold the voxels.
+
+    A leaf is *changed* (refitted) when what its GP sees moved (its effective counts or
+    its kept returns), *kept* (stored, not refitted) when only its stored counts moved.
+
+    Parameters
+    ----------
+    obs : VoxelObservations
+        The step's observations.
+    grid : LeafGrid
+    config : MapConfig
+        Uses ``lattice.evidence_cap`` and the resolved ``clear_scans``.
+    lookup : callable
+        The current leaf of a packed key, or ``None``; only read.
+
+    Returns
+    -------
+    Evidence
+        ``new_items`` counts the (voxel, class) inputs of leaf GPs that changed.
+    """
+    voxel, leaf_index, flat = _halo_copies(obs, grid)
+    touched, first, inverse = np.unique(
+        pack_keys(leaf_index), return_index=True, return_inverse=True
+    )
+    n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
+    old = np.zeros((touched.size, 2, n_halo), dtype=np.uint8)
+    current: list[Leaf | None] = []
+    for j, key in enumerate(touched.tolist()):  # one iteration per touched leaf
+        leaf = lookup(key)
+        current.append(leaf)
+        if leaf is not None and lattice_evidence(leaf).counts.shape[1] == n_halo:
+            old[j] = lattice_evidence(leaf).counts
+    cap = config.lattice.evidence_cap
+    before_h = old[inverse, 0, flat].astype(np.int64)
+    before_f = old[inverse, 1, flat].astype(np.int64)
+    state = advance(before_h, before_f, obs, voxel, cap)
+    new = old.copy()
+    new[inverse, 0, flat] = state.hits
+    new[inverse, 1, flat] = state.frees
+    # what the leaf GP sees: its effective counts, and the kept returns
+    eh0, ef0 = effective_counts(before_h, before_f, cap, obs.clear_scans)
+    eh1, ef1 = effective_counts(state.hits, state.frees, cap, obs.clear_scans)
+    d_h, d_f = eh1 != eh0, ef1 != ef0
+    moves = state.replace | state.drop
+    effective = d_h | d_f | moves
+    stored = effective | (state.hits != before_h) | (state.frees != before_f)
+    # the pairs whose return is new or forgotten, grouped by leaf
+    with_move = np.flatnonzero(moves)
+    with_move = with_move[np.argsort(inverse[with_move], kind="stable")]
+    move_bounds = np.searchsorted(inverse[with_move], np.arange(touched.size + 1))
+    refit = np.zeros(touched.size, dtype=bool)
+    refit[inverse[effective]] = True
+    packed_voxels = pack_keys(obs.keys)
+    changed: list[tuple[int, Leaf]] = []
+    kept: list[tuple[int, Leaf]] = []
+    for j in np.unique(inverse[stored]).tolist():  # one iteration per leaf with new counts
+        leaf = current[j]
+        if leaf is None:
+            index = np.asarray(leaf_index[first[j]], dtype=np.int64).copy()
+            leaf = Leaf(index, LatticeEvidence.empty(grid.dim))
+        ev = lattice_evidence(leaf)
+        hit_keys, hits = ev.hit_keys, ev.hits
+        pairs = with_move[move_bounds[j] : move_bounds[j + 1]]
+        if pairs.size:  # kept in voxel-key order, however the scans were grouped
+            gone = np.isin(hit_keys, packed_voxels[voxel[pairs[state.drop[pairs]]]])
+            add = pairs[state.replace[pairs]]
+            keys = np.concatenate([hit_keys[~gone], packed_voxels[voxel[add]]])
+            order = np.argsort(keys, kind="stable")
+            hits = np.concatenate([hits[~gone], state.position[add]])[order]
+            hit_keys = keys[order]
+        leaf = leaf.evolve(evidence=LatticeEvidence(new[j].copy(), hit_keys, hits))
+        (changed if refit[j] else kept).append((int(touched[j]), leaf))
+    gained = int(d_h.sum() + d_f.sum())
+    return Evidence(changed, touched.tolist(), gained, kept)
+
+
+def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
+    """The lattice of a map's leaves: leaf and halo in voxels, lattice points per axis."""
+    grid = LeafGrid.from_config(config)
+    k_max = config.max_inducing_per_axis
+    box = grid.side + 2 * grid.halo_voxels
+    k_min = min(k_max, box // 3)  # at least one lattice point per 3 voxels
+    edge = box * grid.resolution
+    k = inducing_per_axis(edge, hp.length_scale, config.inducing_spacing, k_min, k_max)
+    return LatticeGeometry(config.dim, grid.side, grid.halo_voxels, k, grid.resolution)
+
+
+@functools.lru_cache(maxsize=8)
+def map_tables(config: MapConfig, hp: Hyperparameters) -> LatticeTables:
+    """The lattice tables of a map (:func:`octolgp.gp.lattice.lattice_tables`), memoised.
+
+    A pure function of its frozen arguments; the cache only saves recomputing them.
+    """
+    return lattice_tables(lattice_geometry(config, hp), hp)
+
+
+def return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: int) -> HitPoints:
+    """Each leaf's kept returns relative to its lower corner (metres), with their weights.
+
+    A voxel seen occupied contributes its kept return, weighing ``min(counts[0, v],
+    evidence_cap)``.
+    """
+    box, halo, d = grid.side + 2 * grid.halo_voxels, grid.halo_voxels, grid.dim
+    evidence = [lattice_evidence(leaf) for leaf in leaves]
+    n_kept = np.array([ev.hit_keys.size for ev in evidence])
+    index = np.stack([leaf.index for leaf in leaves])
+    owner = np.repeat(np.arange(len(leaves)), n_kept)
+    keys = np.concatenate([ev.hit_keys for ev in evidence])
+    local = unpack_keys(keys, d) - (index[owner] * grid.side - halo)
+    flat = local @ (box ** np.arange(d, dtype=np.int64))
+    counts = np.concatenate([ev.counts[0] for ev in evidence]).reshape(len(leaves), -1)
+    weights = np.minimum(counts[owner, flat], evidence_cap).astype(np.float64)
+    lo, _ = grid.box(index)
+    pos = np.concatenate([ev.hits for ev in evidence]) - lo[owner]
+    cuts = np.cumsum(n_kept)[:-1]
+    return list(zip(np.split(pos, cuts), np.split(weights, cuts), strict=True))
+
+
+def fit_lattice_leaves(
+    leaves: list[Leaf], config: MapConfig, hp: Hyperparameters, pool: Executor | None = None
+) -> list[LeafFit]:
+    """Fit leaves on their observation counts, all at once (pure).
+
+    Each leaf's latent posterior at its voxel centres comes from
+    :func:`octolgp.gp.lattice.lattice_posterior`, then PLSC and pruning. With ``pool``
+    the leaves are split into ``config.n_jobs`` runs.
+
+    Returns
+    -------
+    list of LeafFit
+        One per leaf, in order (a lattice fit never needs a jitter repair).
+    """
+    if not leaves:
+        return []
+    lc = config.lattice
+    tables = map_tables(config, hp)
+    stored = np.stack([lattice_evidence(leaf).counts for leaf in leaves])
+    n_halo = tables.phi.shape[0]
+    if stored.shape[2] != n_halo:
+        raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
+    hits, frees = effective_counts(stored[:, 0], stored[:, 1], lc.evidence_cap, config.clear_scans)
+    points = return_points(leaves, LeafGrid.from_config(config), lc.evidence_cap)
+    runs = 1 if pool is None else min(len(leaves), config.n_jobs)
+    bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
+    parts = [(hits[lo:hi], frees[lo:hi], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
+
+    def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
+        return lattice_posterior(tables, part[0], part[1], lc.free_weight, part[2])
+
+    results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
+    mean = np.concatenate([r[0] for r in results])
+    var = np.concatenate([r[1] for r in results])
+    prob = latent_occupancy(mean, var, hp)
+    prune = config.online.prune
+    return [
+        LeafFit(with_values(leaf, mean[j], var[j], prob[j], prune), 0)
+        for j, leaf in enumerate(leaves)
+    ]
+
+
+class LatticeEngine:
+    """The lattice engine of a map (:class:`octolgp.engines.base.LeafEngine`).
+
+    Parameters
+    ----------
+    config : MapConfig
+        The map's resolved config.
+    """
+
+    name = "lattice"
+
+    def __init__(self, config: MapConfig) -> None:
+        self.config = config
+        self.grid = LeafGrid.from_config(config)
+
+    def evidence(self, scans: list[Scan], lookup: Lookup, stats: dict[str, float]) -> Evidence:
+        """Scans → voxel observations → the leaves whose counts move."""
+        t = time.perf_counter()
+        obs = observe(scans, self.config)
+        stats["training"] = stats.get("training", 0.0) + time.perf_counter() - t
+        t = time.perf_counter()
+        evidence = gather_observations(obs, self.grid, self.config, lookup)
+        stats["assign"] = stats.get("assign", 0.0) + time.perf_counter() - t
+        return evidence
+
+    def fit(
+        self,
+        leaves: list[Leaf],
+        hp: Hyperparameters,
+        pool: Executor | None = None,
+        *,
+        reuse: bool = True,
+    ) -> list[LeafFit]:
+        """Fit all the leaves together (:func:`fit_lattice_leaves`); nothing to reuse."""
+        return fit_lattice_leaves(leaves, self.config, hp, pool)
+
+    def rebuilt(self, keys: Iterable[int]) -> None:
+        """Nothing is cached per leaf."""
+
+    def empty(self, dim: int) -> LatticeEvidence:
+        """Nothing seen."""
+        return LatticeEvidence.empty(dim)
+
+    def encode(self, evidence: object) -> bytes:
+        """Sizes, then the counts (uint8), the kept returns' keys and positions."""
+        if not isinstance(evidence, LatticeEvidence):
+            raise TypeError(f"expected LatticeEvidence, got {type(evidence).__name__}")
+        ev = evidence
+        head = _SIZES.pack(ev.counts.shape[1], ev.hit_keys.size)
+        parts = (
+            np.ascontiguousarray(ev.counts, dtype=np.uint8),
+            ev.hit_keys.astype("<i8"),
+            ev.hits.astype("<f8"),
+        )
+        return head + b"".join(p.tobytes() for p in parts)
+
+    def decode(self, blob: bytes, dim: int) -> LatticeEvidence:
+        """Inverse of :meth:`encode`."""
+        if len(blob) < _SIZES.size:
+            raise OctolgpError("lattice evidence is truncated")
+        n_halo, r = _SIZES.unpack_from(blob)
+        if min(n_halo, r) < 0:
+            raise OctolgpError("lattice evidence has a bad header")
+        specs = [(2 * n_halo, "u1"), (r, "<i8"), (r * dim, "<f8")]
+        counts, hit_keys, hits = read_arrays(blob, _SIZES.size, specs)
+        return LatticeEvidence(counts.reshape(2, n_halo), hit_keys, hits.reshape(r, dim))

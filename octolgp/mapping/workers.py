@@ -1,0 +1,46 @@
+"""Where an online map's leaf fits run: a thread pool over leaves, BLAS held to one thread.
+
+Leaf GPs are small matrices, so parallelism is over leaves, not inside BLAS.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from threadpoolctl import ThreadpoolController
+
+
+class Workers:
+    """A map's fitting threads, started on first use.
+
+    Parameters
+    ----------
+    n_jobs : int
+        Threads fitting leaves (1: fit on the calling thread).
+    """
+
+    def __init__(self, n_jobs: int) -> None:
+        self.n_jobs = n_jobs
+        self._pool: ThreadPoolExecutor | None = None
+        self._blas: ThreadpoolController | None = None
+
+    def pool(self, n_tasks: int) -> ThreadPoolExecutor | None:
+        """The thread pool when ``n_jobs > 1`` and there is more than one task."""
+        if self.n_jobs <= 1 or n_tasks < 2:
+            return None
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=self.n_jobs)
+        return self._pool
+
+    def one_blas_thread(self) -> Any:
+        """A context in which BLAS runs on one thread."""
+        if self._blas is None:  # finding the BLAS libraries is the slow part: once per map
+            self._blas = ThreadpoolController()
+        return self._blas.limit(limits=1)
+
+    def close(self) -> None:
+        """Stop the threads (a later fit starts them again)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
