@@ -641,6 +641,8 @@ class MapConfig:
         for key, table in tables:
             lines += ["", f"[{key}]"]
             lines += [f"{name} = {_toml_value(v)}" for name, v in table.items()]
+            if key == "online" and self.online.n_jobs is None:
+                lines.append("# n_jobs: unset, the usable CPU cores (at most 8) when the map runs")
         return "\n".join(lines) + "\n"
 
 

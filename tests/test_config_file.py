@@ -72,7 +72,7 @@ def test_partial_file_keeps_its_values_and_fills_defaults(tmp_path: Path) -> Non
 
 
 BAD_FILES = [
-    ("[online]\nclear_scan = 3\n", r"online\.clear_scan: unknown key \(keys: leaf_depth, "),
+    ("[online]\nclear_scan = 3\n", r"online\.clear_scan: unknown key \(keys: engine, leaf_depth, "),
     ("resolutoin = 0.1\n", r"resolutoin: unknown key"),
     ("[hyperparameters]\nsigma = 1.0\n", r"hyperparameters\.sigma: unknown key"),
     ("[nav]\nx = 1\n", r"nav: unknown key"),
@@ -107,7 +107,10 @@ def test_dump_config_defaults_file_and_flags(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     assert main(["dump-config"]) == 0
-    assert MapConfig.from_dict(tomllib.loads(capsys.readouterr().out)) == MapConfig()
+    dumped = tomllib.loads(capsys.readouterr().out)
+    assert MapConfig.from_dict(dumped) == MapConfig().resolve()
+    assert dumped["online"]["leaf_depth"] == 14  # every derived default, filled in
+    assert dumped["lattice"]["clear_margin"] == pytest.approx(0.5)
     path = _write(tmp_path / "c.toml", FILE)
     argv = [
         "dump-config",

@@ -30,6 +30,7 @@ from octolgp import (
 )
 from octolgp.cli import main
 from octolgp.config import (
+    ExactConfig,
     LearningConfig,
     OgmConfig,
     OnlineConfig,
@@ -326,24 +327,30 @@ BAD_CONFIGS: list[tuple[Callable[[], Any], str]] = [
             ("halo", 0.5),
             ("halo", float("nan")),
             ("halo", "0.2"),
-            ("max_leaf_items", 1),
-            ("max_leaf_items", 2.5),
             ("learn_scans", 0),
             ("prune", "yes"),
-            ("prune_free", 0.0),
-            ("prune_free", 0.6),
-            ("prune_free", float("nan")),
-            ("prune_occupied", 0.4),
-            ("prune_occupied", 1.0),
             ("n_jobs", 0),
-            ("free_voxels", 0),
-            ("free_voxels", 65),
             ("leaf_depth", 0),
             ("leaf_depth", 17),
             ("max_scan_points", 0),
             ("max_scan_points", 1.5e6),
         ]
     ],
+    *[
+        (lambda k=k, v=v: ExactConfig(**{k: v}), f"ExactConfig.{k}")
+        for k, v in [
+            ("max_leaf_items", 1),
+            ("max_leaf_items", 2.5),
+            ("free_voxels", 0),
+            ("free_voxels", 65),
+        ]
+    ],
+    (lambda: MapConfig(exact="x"), "MapConfig.exact"),  # type: ignore[arg-type]
+    (lambda: MapConfig(lattice="x"), "MapConfig.lattice"),  # type: ignore[arg-type]
+    (
+        lambda: MapConfig.from_dict({"online": {"prune_free": 0.2}}),
+        "online.prune_free: no longer a setting",
+    ),
     (lambda: MapConfig(tree_depth=8, online=OnlineConfig(leaf_depth=9)), "OnlineConfig.leaf_depth"),
     (lambda: TrainingConfig(quadrature_spacing=0), "TrainingConfig.quadrature_spacing"),
     (lambda: TrainingConfig(free_margin=-1), "TrainingConfig.free_margin"),

@@ -40,7 +40,7 @@ def add_config_option(p: argparse.ArgumentParser) -> None:
 def resolve_config(
     args: argparse.Namespace, dim: int | None = None, *, n_jobs: int | None = None
 ) -> MapConfig:
-    """The map configuration a command asks for.
+    """The map configuration a command asks for, resolved (:meth:`MapConfig.resolve`).
 
     Parameters
     ----------
@@ -75,7 +75,7 @@ def resolve_config(
         online["n_jobs"] = n_jobs
     if online:
         changes["online"] = dataclasses.replace(base.online, **online)
-    return dataclasses.replace(base, **changes) if changes else base
+    return (dataclasses.replace(base, **changes) if changes else base).resolve()
 
 
 def config_path(out: str | Path, folder: bool = False) -> Path:
