@@ -14,13 +14,15 @@ counts of a set of scans are therefore the sums of the counts of its parts, in a
 order: this is what makes inserting scans one by one equal to inserting them at once.
 
 **Newer evidence wins** (``OnlineConfig.clear_scans`` = K > 0, the default): a voxel's
-state is its return count ``h`` and its free count ``f`` since its last return. A scan
-with a return in the voxel sets ``h += 1, f = 0``; a scan that sees it free sets
-``f += 1`` and, once ``f >= K``, forgets its returns (``h = 0``). The observations of a
-run of scans are summarised per voxel (:class:`VoxelObservations`' ``head_frees``,
-``tail_frees``, ``restart_*``) so that :func:`advance` applies the whole run to a state
-exactly as the scans one by one would; summaries of consecutive runs compose
-(:func:`merge_observations`), so one-by-one and one-step insertion still agree.
+state is its return count and its free count since its last return, and each scan
+changes it by :func:`newer_evidence_wins`: a return counts and restarts the free count,
+a free look counts up to K, and K free looks forget the returns. That function is the
+rule's specification. To apply a whole run of scans at once, its observations are
+summarised per voxel (:class:`VoxelObservations`' ``head_frees``, ``tail_frees`` and
+``restart_*``) so that :func:`advance` gives what the scans one by one would; summaries
+of consecutive runs compose (:func:`merge_observations`), so one-by-one and one-step
+insertion agree (``tests/test_observations.py`` checks :func:`advance` against
+:func:`newer_evidence_wins`).
 """
 
 from __future__ import annotations
@@ -427,6 +429,54 @@ def _then(a: VoxelObservations, b: VoxelObservations, dim: int) -> VoxelObservat
     )
 
 
+def newer_evidence_wins(
+    hits: IntArray,
+    frees: IntArray,
+    seen_hit: NDArray[np.bool_],
+    seen_free: NDArray[np.bool_],
+    seen_weakly: NDArray[np.bool_],
+    clear_scans: int,
+    evidence_cap: int,
+) -> tuple[IntArray, IntArray, NDArray[np.bool_], NDArray[np.bool_]]:
+    """One scan's observations applied to voxel states: the lattice engine's evidence rule.
+
+    Parameters
+    ----------
+    hits, frees : ndarray of int, shape (p,)
+        Each voxel's return count and free count before the scan.
+    seen_hit : ndarray of bool, shape (p,)
+        The scan has a return in the voxel.
+    seen_free : ndarray of bool, shape (p,)
+        The scan's free segments cross the voxel (and it holds none of its returns).
+    seen_weakly : ndarray of bool, shape (p,)
+        ... only within ``clear_margin`` of their returns or on no-return beams: free
+        evidence that does not count towards forgetting a return.
+    clear_scans, evidence_cap : int
+        K (0: a static world) and the saturation of the return count.
+
+    Returns
+    -------
+    hits, frees : ndarray of int, shape (p,)
+        The counts after the scan.
+    renewed : ndarray of bool, shape (p,)
+        The voxel's kept return becomes this scan's first return in it.
+    forgotten : ndarray of bool, shape (p,)
+        The voxel's returns are forgotten.
+    """
+    h0, f0 = hits.astype(np.int64), frees.astype(np.int64)
+    if not clear_scans:  # a static world: both counts add, the first return stays
+        h = np.minimum(h0 + seen_hit, evidence_cap)
+        f = np.minimum(f0 + seen_free, evidence_cap)
+        return h, f, (h0 == 0) & seen_hit, np.zeros(h.size, dtype=bool)
+    holding = h0 > 0
+    # without a return every free look counts; holding one, only a strong look does
+    counted = seen_free & (~holding | ~seen_weakly)
+    f = np.where(seen_hit, 0, np.minimum(f0 + counted, clear_scans))  # a return restarts it
+    forgotten = holding & ~seen_hit & (f >= clear_scans)
+    h = np.where(seen_hit, np.minimum(h0 + 1, evidence_cap), np.where(forgotten, 0, h0))
+    return h, f, seen_hit & ~holding, forgotten
+
+
 @dataclass(frozen=True)
 class VoxelState:
     """A voxel's evidence after a run of scans (:func:`advance`), per (voxel, copy) pair.
@@ -458,6 +508,9 @@ def advance(
     evidence_cap: int,
 ) -> VoxelState:
     """Apply a run of scans' observations to voxel states, as the scans one by one would.
+
+    The scans one by one are :func:`newer_evidence_wins` scan after scan; this applies
+    the run's summary in one pass.
 
     Parameters
     ----------
@@ -518,7 +571,7 @@ def effective_counts(
     occupied only: its later frees count only towards forgetting the return, so a wall
     voxel that grazing beams see free now and then does not flip its leaf. A voxel
     without one counts each scan that saw it free, up to K (the count the rule keeps
-    anyway), each weighing ``online.free_weight``: a voxel seen free once, beside a wall,
+    anyway), each weighing ``lattice.free_weight``: a voxel seen free once, beside a wall,
     weighs little against the wall's returns, one seen free scan after scan (an opened
     doorway) K times as much.
 

@@ -30,6 +30,10 @@ that fails listing every offending ``file:line``:
    dask or distributed (checked in a fresh interpreter).
 9. **The layout exists**: the subpackages, ``octolgp/py.typed``, and
    ``python -m octolgp --help``.
+10. **Leaf engines apart**: ``octolgp.engines.lattice`` and ``octolgp.engines.exact`` never
+    import each other, and the orchestrator (``octolgp.mapping.online`` and the modules it
+    delegates to) imports only the seam (``octolgp.engines``, ``octolgp.engines.base``),
+    so a third engine is one module and the map never branches on which it has.
 
 The import graph (rule 1) has one edge per import statement anywhere in a file,
 including inside functions: a lazy import still closes a cycle once it runs. ``from
@@ -541,6 +545,33 @@ def check_numerics_independent(modules: Sequence[Module]) -> list[Violation]:
     return violations
 
 
+#: The leaf engines (rule 10): each its own module, neither importing the other.
+ENGINES = ("octolgp.engines.lattice", "octolgp.engines.exact")
+#: What the orchestrator may import of the engines (rule 10): the seam, not an engine.
+ENGINE_SEAM = ("octolgp.engines", "octolgp.engines.base")
+#: The orchestrators, which call ``self.engine`` and never an engine's internals.
+ORCHESTRATORS = ("octolgp.mapping.online", "octolgp.mapping.correction", "octolgp.mapping.evidence")
+
+
+def check_engines_apart(modules: Sequence[Module]) -> list[Violation]:
+    """Rule 10: the engines never import each other; orchestrators only the engine seam."""
+    violations = []
+    for module in modules:
+        for ref in iter_imports(module):
+            engine = next((e for e in ENGINES for c in ref.candidates if _is_within(c, e)), None)
+            if engine is None:
+                continue
+            if module.within(ENGINES) and not module.within((engine,)):
+                violations.append(
+                    Violation(module.path, ref.line, f"`{ref.spelled}`: engine -> {engine}")
+                )
+            if module.name in ORCHESTRATORS:
+                violations.append(
+                    Violation(module.path, ref.line, f"`{ref.spelled}`: orchestrator -> {engine}")
+                )
+    return violations
+
+
 def _rerun_allowed(module: Module) -> bool:
     """``octolgp/sinks/**`` named ``*rerun*``, or ``octolgp/io/rrd*`` (file or package)."""
     parts = Path(module.path).with_suffix("").parts
@@ -918,6 +949,24 @@ def test_sqlite3_only_in_persist() -> None:
         "Rule 6 (sqlite3 only in octolgp/persist/)",
         check_dependency_confined(package_modules(), "sqlite3"),
     )
+
+
+def test_engines_are_apart_and_behind_their_seam() -> None:
+    _fail_on(
+        "Rule 10 (leaf engines never import each other; the orchestrator imports only "
+        "octolgp.engines and octolgp.engines.base)",
+        check_engines_apart(package_modules()),
+    )
+
+
+def test_checker_engines_apart() -> None:
+    lattice = _fake("octolgp.engines.lattice", "from octolgp.engines.exact import ExactEngine\n")
+    online = _fake("octolgp.mapping.online", "from octolgp.engines.lattice import x\n")
+    seam = _fake("octolgp.mapping.online", "from octolgp.engines import engine_for\n")
+    own = _fake("octolgp.engines.lattice", "from octolgp.engines.base import Evidence\n")
+    assert len(check_engines_apart([lattice])) == 1
+    assert len(check_engines_apart([online])) == 1
+    assert check_engines_apart([seam, own]) == []
 
 
 def test_no_result_bearing_globals() -> None:

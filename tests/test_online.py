@@ -300,6 +300,35 @@ def test_online_matches_batch_on_the_paper_simulation(engine: str) -> None:
     assert abs(auc_o - auc_b) < 0.01
 
 
+EXACT_AUC_SLACK = 0.005
+"""How far below the exact engine's AUC the lattice engine may read on the paper scene."""
+
+
+def test_the_lattice_engine_matches_the_exact_reference() -> None:
+    """The default engine against the paper's exact local GPs, same scans, same
+    hyperparameters: AUC against the scene's true labels within EXACT_AUC_SLACK, and the
+    same class (P > 0.5) at 95 % of the observed voxels."""
+    data = simulate_paper2d(seed=0)
+    maps = {}
+    for engine in ENGINES:
+        config = MapConfig(
+            dim=2,
+            resolution=0.2,
+            hyperparameters=Hyperparameters(1.2, 1.0, 0.1, 6.0, -0.2),
+            online=OnlineConfig(engine=engine, clear_scans=0),
+        )
+        maps[engine] = OnlineMap(config)
+        maps[engine].insert_batch(data.scans)
+    auc = {
+        e: roc_auc_score(data.truth_labels, m.occupancy(data.truth_points)) for e, m in maps.items()
+    }
+    assert auc["exact"] > 0.97
+    assert auc["lattice"] >= auc["exact"] - EXACT_AUC_SLACK, auc
+    centres, _ = maps["exact"].voxels()
+    agree = (maps["lattice"].occupancy(centres) > 0.5) == (maps["exact"].occupancy(centres) > 0.5)
+    assert agree.mean() >= 0.95, agree.mean()
+
+
 # ---------------------------------------------------------------- queries
 def test_unknown_space_is_exactly_half_and_prior() -> None:
     m = OnlineMap(config2d())

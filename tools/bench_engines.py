@@ -8,7 +8,7 @@ integral kernels) and each seed, ``octolgp eval``'s protocol (10 % of the scans 
 out in runs of 40, endpoints occupied, points along the beams free), the online map
 built in one step (the same map as inserting the scans one by one). Hyperparameters
 are learnt once per split on the first ``learn_scans`` training scans and shared by
-both engines. Extra variants: ``--variant "online.free_weight=0.5"`` (settings
+both engines. Extra variants: ``--variant "lattice.free_weight=0.5"`` (settings
 ``SECTION.FIELD=VALUE`` separated by ``;``).
 
     .venv/bin/python tools/bench_engines.py data/intel_lab/intel-corrected.log.gz --seeds 3

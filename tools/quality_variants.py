@@ -8,8 +8,8 @@ share one learning per split. A variant is ``;``-separated ``SECTION.FIELD=VALUE
 (empty: the default config). ``--protocol endpoint`` uses one free point per beam (the
 protocol of ``tools/bench_engines.py``)::
 
-    python tools/quality_variants.py orebro,edmonton 5 "" "online.free_weight=0.08"
-    python tools/quality_variants.py fr079 3 "online.clear_scans=0;online.evidence_cap=8"
+    python tools/quality_variants.py orebro,edmonton 5 "" "lattice.free_weight=0.08"
+    python tools/quality_variants.py fr079 3 "online.clear_scans=0;lattice.evidence_cap=8"
 
 Logs: ``intel`` (bundled), ``fr079`` and the five of ``../shared/data/radish_2d``.
 """
