@@ -169,9 +169,9 @@ class LearningConfig:
     objective : {"lml", "lml+loo"}
         ``"lml"`` (default): the kernel by log marginal likelihood, then α, β by the
         LOO predictive probability (R&W §6.5). ``"lml+loo"`` then refines all five
-        jointly by the LOO predictive probability, starting from that point. It
-        helped on the paper's simulation (AUC +0.002) but hurt on a noise-free room
-        (signal variance ran to its bound), so it is opt-in.
+        jointly by the LOO predictive probability, starting from that point; opt-in,
+        as on a noise-free scene it drives the signal variance to its bound
+        (``BENCHMARKS.md``, "Kim & Kim Table II").
     """
 
     max_clusters: int = 8

@@ -1,26 +1,28 @@
 r"""The lattice leaf GP: voxel observations, a fixed inducing lattice, batched over leaves.
 
-The fast leaf engine of the online map (``OnlineConfig.engine = "lattice"``; the
-design and the measurements behind it are in ``docs/design-realtime-3d.md``).
+The numerics of the online map's default leaf engine (:mod:`octolgp.engines.lattice`;
+the design and the measurements behind it are in ``docs/design-realtime-3d.md``).
 
-**Model.** A leaf's training data are its halo box's *voxel observations*: voxel
-``v`` was seen ``h_v`` times with a return (target +1) and ``f_v`` times crossed by a
-free segment (target −1), each a point observation of the latent ``f`` at the voxel
-centre with noise ``σn²``. The latent is a DTC sparse GP (Quiñonero-Candela &
-Rasmussen 2005) on ``m = k**d`` inducing points ``u`` on a regular lattice over the
-halo box, in whitened form: with ``K_uu = L Lᵀ`` and the feature of a point
-``φ(x) = L⁻¹ k_u(x)``,
+**Model.** A leaf's training data are its halo box's observations: returns, each a
+point observation (target +1) of the latent ``f`` at its measured position with weight
+``w_r`` (its voxel's return count), and free voxels, each an observation (target −1) at
+the voxel centre with weight ``γ f_v`` (``f_v`` the voxel's effective free count,
+``γ`` the free weight), every observation with noise ``σn² / w``. Which voxels count,
+and how often, is the engine's rule (:mod:`octolgp.engines.lattice`,
+:func:`octolgp.observations.effective_counts`). The latent is a DTC sparse GP
+(Quiñonero-Candela & Rasmussen 2005) on ``m = k**d`` inducing points ``u`` on a regular
+lattice over the halo box, in whitened form: with ``K_uu = L Lᵀ`` and the feature of a
+point ``φ(x) = L⁻¹ k_u(x)``,
 
 .. math::
 
-    A = I + σ_n^{-2} \sum_v w_v φ_v φ_vᵀ,\quad b = σ_n^{-2} \sum_v s_v φ_v,
-    \quad w_v = h_v + f_v,\ s_v = h_v − f_v,
+    A = I + σ_n^{-2} \sum_i w_i φ_i φ_iᵀ,\quad b = σ_n^{-2} \sum_i w_i y_i φ_i,
 
     μ(x) = φ(x)ᵀ A^{-1} b,\qquad
     σ^2(x) = k(x, x) − |φ(x)|^2 + φ(x)ᵀ A^{-1} φ(x).
 
 Far from any observation ``A → I`` and the posterior returns to the prior ``(0, σf²)``;
-with the lattice at the observed voxels it is the exact GP on them.
+with the lattice at the observed points it is the exact GP on them.
 
 **Why it is fast.** The voxel centres of every leaf's halo box and the lattice sit at
 the same offsets from the leaf's corner in every leaf, so ``φ`` of every halo voxel
@@ -28,8 +30,8 @@ the same offsets from the leaf's corner in every leaf, so ``φ`` of every halo v
 for the whole map* (:func:`lattice_tables`): fitting a leaf evaluates no kernel at
 all. It is ``Φ_vᵀ Φ_v`` over the leaf's observed voxels, one Cholesky of ``m × m``
 and two small products, stacked over many leaves into a few BLAS calls
-(:func:`lattice_posterior`). The posterior is a pure function of the counts, so the
-order in which scans arrive cannot change a leaf.
+(:func:`lattice_posterior`). The posterior is a pure function of the leaf's counts and
+kept returns.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Corrected poses: validate rigid transforms, move scans, find what a correction touches.
 
-What :meth:`octolgp.mapping.online.OnlineMap.correct_scans` computes before it writes. A correction
-maps a scan's number (from 1, as in ``ScanUpdate.scan``) to a rigid transform, a
+What :meth:`octolgp.mapping.online.OnlineMap.correct_scans` computes before it writes.
+A correction maps a scan's number (from 1, as in ``ScanUpdate.scan``) to a rigid transform, a
 ``(d+1, d+1)`` homogeneous matrix ``T = [[R, t], [0, 1]]`` applied to the scan's
 world-frame origin and points (``p' = R p + t``). The map then rebuilds exactly the
 leaves that either version of a corrected scan touches, from every journaled scan

@@ -481,11 +481,7 @@ class OnlineMap(MapReads):
         scan_list = new_scans
         if self.hyperparameters is None and fitter is None:  # learn on the first scans
             scan_list = self._bootstrap.take() + new_scans
-            t = time.perf_counter()
-            hp = learn_hyperparameters(scan_list[: self.config.learn_scans], self.config)
-            stats["learning"] = time.perf_counter() - t
-            logger.info("learnt hyperparameters on the first scans: %s", hp)
-            self.hyperparameters = hp
+            self._learn_first(scan_list, stats)
         # 1. every scan's evidence, chunk by chunk in time order
         with self._workers.one_blas_thread():
             gathered, refit, new_items = gather_batch(
@@ -499,15 +495,8 @@ class OnlineMap(MapReads):
         del gathered, kept
         # 2. fit in batches, each written (durable, then evictable) before the next
         t = time.perf_counter()
-        pruned = repaired = done = 0
         run = self._local_fitter if fitter is None else fitter
-        for group_k, group_f in run(keys, leaves):  # one batch of leaves per iteration
-            self._write([(k, f.leaf) for k, f in zip(group_k, group_f, strict=True)], stamp=index)
-            pruned += sum(f.leaf.pruned for f in group_f)
-            repaired += self._count_repairs(group_f)
-            done += len(group_k)
-            if progress is not None:
-                progress(done, len(keys))
+        pruned, repaired = self._write_batches(run(keys, leaves), index, len(keys), progress)
         stats["fit"] = time.perf_counter() - t
         # 3. the journal and the scan count, last
         t = time.perf_counter()
@@ -533,6 +522,32 @@ class OnlineMap(MapReads):
         )
         self.sink.on_update(update, self._change((k, self.store.peek(k)) for k in keys))
         return update
+
+    def _learn_first(self, scans: list[Scan], stats: dict[str, float]) -> None:
+        """Learn the hyperparameters on the first ``learn_scans`` scans (``stats["learning"]``)."""
+        t = time.perf_counter()
+        hp = learn_hyperparameters(scans[: self.config.learn_scans], self.config)
+        stats["learning"] = time.perf_counter() - t
+        logger.info("learnt hyperparameters on the first scans: %s", hp)
+        self.hyperparameters = hp
+
+    def _write_batches(
+        self,
+        batches: Iterator[tuple[list[int], list[LeafFit]]],
+        stamp: int,
+        total: int,
+        progress: Any,
+    ) -> tuple[int, int]:
+        """Write fitted batches of leaves one by one; return the pruned and repaired counts."""
+        pruned = repaired = done = 0
+        for keys, fits in batches:  # one batch of leaves per iteration
+            self._write([(k, f.leaf) for k, f in zip(keys, fits, strict=True)], stamp=stamp)
+            pruned += sum(f.leaf.pruned for f in fits)
+            repaired += self._count_repairs(fits)
+            done += len(keys)
+            if progress is not None:
+                progress(done, total)
+        return pruned, repaired
 
     def _local_fitter(
         self, keys: list[int], leaves: list[Leaf]
