@@ -10,9 +10,14 @@ both alike. Prints the median ``insert_scan`` time of each run and the ratio of 
 medians (working tree / baseline). Only the public API is used, so both trees run
 the same code here.
 
+``--scene 3dtk``: the 3DTK fixture ``tests/data/3dtk`` instead (3 scans at 0.2 m,
+downsampled to 0.2 m, given hyperparameters, each scan inserted into a fresh map per
+repeat of ``--scans`` passes), the 3D path's per-leaf bookkeeping.
+
 Run from the repository root::
 
     .venv/bin/python tools/bench_regression.py --baseline 89ae9f4
+    .venv/bin/python tools/bench_regression.py --baseline 89ae9f4 --scene 3dtk
 """
 
 from __future__ import annotations
@@ -42,11 +47,27 @@ sec = [m.insert_scan(s).seconds for s in scans]
 print(json.dumps({"file": octolgp.__file__, "seconds": sec}))
 """
 
+DRIVER_3D = """
+import json, sys
+import octolgp
+from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, load_scans
+scans = [s.downsample(0.2) for s in load_scans(sys.argv[1])]
+hp = Hyperparameters(length_scale=1.0, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
+config = MapConfig(dim=3, resolution=0.2, hyperparameters=hp,
+                   online=OnlineConfig(n_jobs=int(sys.argv[3])))
+sec = []
+for _ in range(int(sys.argv[2])):
+    m = OnlineMap(config)
+    sec += [m.insert_scan(s).seconds for s in scans]
+    m.close()
+print(json.dumps({"file": octolgp.__file__, "seconds": sec}))
+"""
 
-def run(tree: Path, log: Path, scans: int, jobs: int) -> list[float]:
+
+def run(tree: Path, log: Path, scans: int, jobs: int, driver: str = DRIVER) -> list[float]:
     """Per-scan insert seconds of the octolgp under ``tree``."""
     out = subprocess.run(
-        [sys.executable, "-P", "-c", DRIVER, str(log), str(scans), str(jobs)],
+        [sys.executable, "-P", "-c", driver, str(log), str(scans), str(jobs)],
         env={**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"},
         cwd=tree,
         check=True,
@@ -65,19 +86,25 @@ def main() -> int:
     parser.add_argument("--scans", type=int, default=300, help="first N Intel scans")
     parser.add_argument("--jobs", type=int, default=2, help="threads refitting leaves")
     parser.add_argument("--repeats", type=int, default=2, help="alternating runs per side")
+    parser.add_argument("--scene", choices=["intel", "3dtk"], default="intel")
     args = parser.parse_args()
     log = REPO / "data" / "intel_lab" / "intel-corrected.log.gz"
+    driver, title = DRIVER, f"Intel, first {args.scans} scans, 0.1 m, hp on 10 scans"
+    if args.scene == "3dtk":
+        log = REPO / "tests" / "data" / "3dtk"
+        driver = DRIVER_3D
+        title = f"3DTK fixture, 3 scans x {args.scans} passes, 0.2 m, hp given"
     with tempfile.TemporaryDirectory(prefix="bench_regression_") as tmp:
         base = Path(tmp) / "baseline"
         full = export_tree(args.baseline, base)
         sides = {f"baseline {full[:7]}": base, "working tree": REPO}
         medians: dict[str, list[float]] = {name: [] for name in sides}
-        print(f"Intel, first {args.scans} scans, 0.1 m, n_jobs={args.jobs}, hp on 10 scans")
+        print(f"{title}, n_jobs={args.jobs}")
         print("| run | side | median ms | mean ms | p90 ms |")
         print("|---|---|---|---|---|")
         for r in range(args.repeats):  # alternate the sides
             for name, tree in sides.items():
-                sec = 1e3 * np.array(run(tree, log, args.scans, args.jobs))
+                sec = 1e3 * np.array(run(tree, log, args.scans, args.jobs, driver))
                 medians[name].append(float(np.median(sec)))
                 print(
                     f"| {r + 1} | {name} | {np.median(sec):.1f} | {sec.mean():.1f} | "
