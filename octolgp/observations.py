@@ -281,10 +281,10 @@ def _combine(
     hits[at] = hit_n
     first_hit[at] = hit_points
     frees[np.searchsorted(packed, free_vox)] = free_n
-    return _static(unpack_keys(packed, dim), hits, frees, first_hit)
+    return _without_forgetting(unpack_keys(packed, dim), hits, frees, first_hit)
 
 
-def _static(
+def _without_forgetting(
     keys: IntArray, hits: IntArray, frees: IntArray, first_hit: np.ndarray
 ) -> VoxelObservations:
     """Observations without a newer-evidence summary (``clear_scans`` 0)."""
@@ -365,14 +365,16 @@ def merge_observations(parts: list[VoxelObservations], dim: int) -> VoxelObserva
     """
     if not parts:
         empty = np.zeros(0, dtype=np.int64)
-        return _static(np.zeros((0, dim), dtype=np.int64), empty, empty, np.zeros((0, dim)))
+        return _without_forgetting(
+            np.zeros((0, dim), dtype=np.int64), empty, empty, np.zeros((0, dim))
+        )
     out = parts[0]
     for part in parts[1:]:  # one iteration per part
-        out = _then(out, part, dim)
+        out = _one_run_then_another(out, part, dim)
     return out
 
 
-def _aligned(obs: VoxelObservations, packed: IntArray, union: IntArray) -> VoxelObservations:
+def _on_voxels(obs: VoxelObservations, packed: IntArray, union: IntArray) -> VoxelObservations:
     """``obs`` on the voxels ``union`` (a superset): absent voxels saw nothing."""
     at = np.searchsorted(union, packed)
     n, d = union.size, obs.first_hit.shape[1]
@@ -396,19 +398,21 @@ def _aligned(obs: VoxelObservations, packed: IntArray, union: IntArray) -> Voxel
     )
 
 
-def _then(a: VoxelObservations, b: VoxelObservations, dim: int) -> VoxelObservations:
+def _one_run_then_another(
+    a: VoxelObservations, b: VoxelObservations, dim: int
+) -> VoxelObservations:
     """The observations of run ``a`` followed by run ``b``."""
     if a.clear_scans != b.clear_scans:
         raise ValueError("observations of different clear_scans cannot be merged")
     pa, pb = pack_keys(a.keys), pack_keys(b.keys)
     union = sorted_unique(np.concatenate([pa, pb]).astype(np.int64))
-    a, b = _aligned(a, pa, union), _aligned(b, pb, union)
+    a, b = _on_voxels(a, pa, union), _on_voxels(b, pb, union)
     has_a, has_b = a.hits > 0, b.hits > 0
     first_hit = np.where(has_a[:, None], a.first_hit, b.first_hit)
     hits, frees = a.hits + b.hits, a.frees + b.frees
     k = a.clear_scans
     if not k:
-        return _static(a.keys, hits, frees, first_hit)
+        return _without_forgetting(a.keys, hits, frees, first_hit)
     head = np.where(has_a, a.head_frees, a.strong_frees + b.head_frees)
     tail = np.where(has_b, b.tail_frees, b.strong_frees + a.tail_frees)
     middle = has_a & has_b & (a.tail_frees + b.head_frees >= k)
