@@ -5,36 +5,68 @@ folder; the candidate is the working tree (or, with ``--candidate REV``, another
 exported commit). ``tools/compare_maps_driver.py``, which uses only the public API
 the versions share, is then run once per tree in a subprocess of the same
 interpreter with ``PYTHONPATH`` set to that tree (it checks ``octolgp.__file__``).
-Both runs see the same inputs:
+
+Every online map is built with both leaf engines: ``lattice`` (the default; the map
+passes no ``online`` section) and ``exact`` (``MapConfig(...,
+online=OnlineConfig(engine="exact"))``, every other online setting at its default,
+so no forgetting); the rows are named by the engine (``lattice_voxels``,
+``exact_voxels``, ...). An online map is fed scan by scan with no query before the
+last scan, then flushed; its rows are ``<engine>_voxels`` (the voxels, sorted by
+centre, and the latent values at their centres), ``<engine>_hp`` (its
+hyperparameters) and, where said, a query at given points (occupancy and
+interpolated latent values). Both runs see the same inputs:
 
 ``intel``
-    The first ``--intel-scans`` scans of ``data/intel_lab/intel-corrected.log.gz``,
-    an ``OnlineMap(MapConfig(dim=2, resolution=0.1))`` fed scan by scan with no
-    query before the last scan (hyperparameters learnt by the map); its voxels,
-    the latent values at their centres, and occupancy and latent values on a
-    regular grid over the map's extent.
+    The first ``--intel-scans`` (lattice, 120) or ``--exact-intel-scans`` (exact,
+    30) scans of ``data/intel_lab/intel-corrected.log.gz``, ``MapConfig(dim=2,
+    resolution=0.1)``, hyperparameters learnt by the map; queried on a 501 x 501
+    grid over the map's extent (``<engine>_grid``).
 ``sim``
     The paper's 2D simulation, written once by the baseline's CLI
-    (``octolgp simulate paper2d --seed 0``): the online map as above, and
+    (``octolgp simulate paper2d --seed 0``): the online map as for ``intel`` (all
+    28 scans), queried at the ``truth_points`` (``<engine>_truth``); and, once,
     ``build_map(..., method=m)`` for lgp, gp, mgp and ogm evaluated at the
-    ``truth_points``; and ``learn_hyperparameters`` on the first 40 scans.
+    ``truth_points`` and ``learn_hyperparameters`` on the first 40 scans
+    (``sim/batch``).
 ``3dtk``
-    The 3DTK fixture ``tests/data/3dtk``, ``OnlineMap(MapConfig(dim=3,
-    resolution=0.2))``: voxels and latent values at their centres.
+    The 3DTK fixture ``tests/data/3dtk`` (3 scans), ``MapConfig(dim=3,
+    resolution=0.2)``, hyperparameters learnt.
+``dynamic3d``
+    A simulated 16 x 360 lidar in an 8 x 6 x 3 m room whose 1 m cube moves from A
+    to B at scan 16 (``octolgp.sim.dynamic.simulate_dynamic_room3d``, 48 scans,
+    voxel-filtered at 0.2 m). The scans are generated once, by the driver with the
+    baseline tree, into an npz scan log that both runs read with ``load_scans``, so
+    a change of the simulator cannot change the inputs. ``MapConfig(dim=3,
+    resolution=0.2)`` with given hyperparameters; the lattice map (forgetting on,
+    its default ``clear_scans``) maps all 48 scans, the exact one the first
+    ``--exact-dynamic-scans`` (24: eight after the move). Queried on a 48 x 36 x 16
+    grid over the map's extent (``<engine>_grid``).
+``corrected``
+    The first ``--correct-scans`` (30) Intel scans into ``OnlineMap(MapConfig(dim=2,
+    resolution=0.1), path=<temporary map file>)`` with given hyperparameters, then
+    ``correct_scans`` moving the scans a third and two thirds of the way (10 and 20
+    of 30) by small rigid transforms about their origins (0.8° and -1.5°, a few centimetres); the voxels after the
+    correction, and the transforms (``<engine>_transforms``).
 
 Voxels are sorted by centre (lexicographic) before the comparison. A row is
 identical when every array of it has the same shape, dtype and bytes in both runs
 (so the voxel centre sets are the same and ``np.array_equal`` holds). The exit
 status is 0 when every row is identical, 1 when one differs and 2 when a run (or
-one data set of a run) fails; the data sets that ran are still compared.
+one unit of a run: a data set with one engine) fails; the units that ran are still
+compared. Nothing of the API is probed for: an attribute one version lacks fails
+that unit in that run, with its traceback.
 
 Usage, from anywhere (the repository is this file's parent's parent)::
 
     .venv/bin/python tools/compare_maps.py [--baseline REV] [--candidate REV]
-        [--intel-scans N] [--datasets intel,sim,3dtk] [--out DIR]
+        [--datasets intel,sim,3dtk,dynamic3d,corrected] [--engines lattice,exact]
+        [--intel-scans N] [--exact-intel-scans N] [--exact-dynamic-scans N]
+        [--correct-scans N] [--out DIR]
 
-``--out`` keeps the two result files and the runs' logs (by default they go to a
-temporary folder that is removed). The two runs go in parallel (``--jobs 2``).
+``--out`` keeps the two result files, the generated inputs and the runs' logs (by
+default they go to a temporary folder that is removed). The two runs go in parallel
+(``--jobs 2``); on the 2-core development machine the default run takes about
+2.5 minutes (``--baseline 86e8419 --candidate 86e8419``: 157 s, 34 rows).
 """
 
 from __future__ import annotations
@@ -53,8 +85,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 DRIVER = Path(__file__).resolve().parent / "compare_maps_driver.py"
-DEFAULT_BASELINE = "89ae9f4"
-DATASETS = ("intel", "sim", "3dtk")
+DEFAULT_BASELINE = "86e8419"
+DATASETS = ("intel", "sim", "3dtk", "dynamic3d", "corrected")
+ENGINES = ("lattice", "exact")
 DELTA_FIELDS = ("prob", "mean", "var")  # the fields with a max |Δ| column
 
 
@@ -129,7 +162,24 @@ def make_simulation(tree: Path, out: Path) -> None:
         raise SystemExit(f"simulate paper2d failed (exit {done.returncode})")
 
 
-def start_driver(side: Side, args: argparse.Namespace, sim: Path, out: Path) -> subprocess.Popen:
+def make_dynamic3d(tree: Path, out: Path) -> None:
+    """Write the dynamic3d scans with the driver run against the octolgp under ``tree``."""
+    cmd = [sys.executable, "-P", str(DRIVER), "--tree", str(tree), "--repo", str(REPO)]
+    done = subprocess.run(
+        [*cmd, "--make-dynamic3d", str(out)],
+        cwd=tree,
+        env=_env(tree),
+        capture_output=True,
+        text=True,
+    )
+    print("  " + (done.stdout + done.stderr).strip().replace("\n", "\n  "))
+    if done.returncode != 0:
+        raise SystemExit(f"writing the dynamic3d scans failed (exit {done.returncode})")
+
+
+def start_driver(
+    side: Side, args: argparse.Namespace, inputs: dict[str, Path], out: Path
+) -> subprocess.Popen:
     """Start the driver against one tree; its output goes to ``<out>/<label>.log``."""
     cmd = [
         sys.executable,
@@ -140,13 +190,23 @@ def start_driver(side: Side, args: argparse.Namespace, sim: Path, out: Path) -> 
         "--repo",
         str(REPO),
         "--sim",
-        str(sim),
+        str(inputs["sim"]),
+        "--dynamic3d",
+        str(inputs["dynamic3d"]),
         "--out",
         str(out / f"{side.label}.npz"),
         "--intel-scans",
         str(args.intel_scans),
+        "--exact-intel-scans",
+        str(args.exact_intel_scans),
+        "--exact-dynamic-scans",
+        str(args.exact_dynamic_scans),
+        "--correct-scans",
+        str(args.correct_scans),
         "--datasets",
         args.datasets,
+        "--engines",
+        args.engines,
     ]
     if args.gp_scans is not None:
         cmd += ["--gp-scans", str(args.gp_scans)]
@@ -156,7 +216,9 @@ def start_driver(side: Side, args: argparse.Namespace, sim: Path, out: Path) -> 
     )
 
 
-def run_drivers(sides: list[Side], args: argparse.Namespace, sim: Path, out: Path) -> bool:
+def run_drivers(
+    sides: list[Side], args: argparse.Namespace, inputs: dict[str, Path], out: Path
+) -> bool:
     """Run the driver for every side, ``args.jobs`` at a time; True if all succeeded."""
     ok = True
     pending = list(sides)
@@ -164,7 +226,7 @@ def run_drivers(sides: list[Side], args: argparse.Namespace, sim: Path, out: Pat
     while pending or running:
         while pending and len(running) < args.jobs:
             side = pending.pop(0)
-            running.append((side, start_driver(side, args, sim, out), time.perf_counter()))
+            running.append((side, start_driver(side, args, inputs, out), time.perf_counter()))
         side, proc, t0 = running.pop(0)
         rc = proc.wait()
         log = (out / f"{side.label}.log").read_text()
@@ -225,7 +287,12 @@ def compare(a: dict[str, np.ndarray], b: dict[str, np.ndarray]) -> list[Row]:
             elif not same:
                 notes.append(f"{field} differs")
         first = next(
-            (f for f in ("centres", "points", "prob", "hyperparameters") if f in fields), ""
+            (
+                f
+                for f in ("centres", "points", "prob", "hyperparameters", "matrices")
+                if f in fields
+            ),
+            "",
         )
         sizes = [
             len(d[f"{dataset}.{name}.{first}"])
@@ -272,9 +339,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--candidate", default=None, help="candidate commit; the working tree when omitted"
     )
-    p.add_argument("--intel-scans", type=int, default=120, help="Intel scans to map (120)")
+    p.add_argument("--intel-scans", type=int, default=120, help="Intel scans, lattice (120)")
     p.add_argument(
-        "--datasets", default=",".join(DATASETS), help="comma-separated subset of intel,sim,3dtk"
+        "--exact-intel-scans", type=int, default=30, help="Intel scans, exact engine (30)"
+    )
+    p.add_argument(
+        "--exact-dynamic-scans", type=int, default=24, help="dynamic3d scans, exact engine (24)"
+    )
+    p.add_argument("--correct-scans", type=int, default=30, help="Intel scans of 'corrected' (30)")
+    p.add_argument(
+        "--datasets",
+        default=",".join(DATASETS),
+        help=f"comma-separated subset of {','.join(DATASETS)}",
+    )
+    p.add_argument(
+        "--engines",
+        default=",".join(ENGINES),
+        help="comma-separated leaf engines of the online maps: lattice,exact",
     )
     p.add_argument("--gp-scans", type=int, default=None, help="sim gp on the first N scans only")
     p.add_argument("--jobs", type=int, choices=(1, 2), default=2, help="driver runs at once")
@@ -283,6 +364,12 @@ def main(argv: list[str] | None = None) -> int:
     unknown = set(args.datasets.split(",")) - set(DATASETS)
     if unknown:
         p.error(f"unknown data sets: {', '.join(sorted(unknown))}")
+    unknown = set(args.engines.split(",")) - set(ENGINES)
+    if unknown:
+        p.error(f"unknown engines: {', '.join(sorted(unknown))}")
+    for name in ("intel_scans", "exact_intel_scans", "exact_dynamic_scans", "correct_scans"):
+        if getattr(args, name) < 1:
+            p.error(f"--{name.replace('_', '-')} must be >= 1")
 
     t_start = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="compare_maps_") as tmp_name:
@@ -301,12 +388,15 @@ def main(argv: list[str] | None = None) -> int:
         for side in sides:
             print(f"{side.label}: {side.description}, PYTHONPATH={side.tree}")
 
-        sim = out / "paper2d_seed0.npz"
+        inputs = {"sim": out / "paper2d_seed0.npz", "dynamic3d": out / "dynamic3d.npz"}
         if "sim" in args.datasets.split(","):
             print("simulating paper2d with the baseline CLI")
-            make_simulation(sides[0].tree, sim)
+            make_simulation(sides[0].tree, inputs["sim"])
+        if "dynamic3d" in args.datasets.split(","):
+            print("simulating the dynamic3d lidar scans with the baseline's simulator")
+            make_dynamic3d(sides[0].tree, inputs["dynamic3d"])
         print(f"running the driver ({args.jobs} at a time); logs in {out}")
-        if not run_drivers(sides, args, sim, out):
+        if not run_drivers(sides, args, inputs, out):
             print(
                 "a run failed: nothing compared (if the working tree is mid-edit, try --candidate REV)"
             )
@@ -318,13 +408,13 @@ def main(argv: list[str] | None = None) -> int:
         meta = json.loads(str(res["meta.json"]))
         times = ", ".join(f"{k} {v:.1f} s" for k, v in meta["timings"].items())
         print(f"{side.label}: octolgp from {meta['octolgp_file']}\n  timings: {times}")
-        for dataset, trace in meta["errors"].items():
+        for unit, trace in meta["errors"].items():
             last = trace.strip().splitlines()[-1]
             print(
-                f"  {dataset} FAILED in the {side.label} run:\n    "
+                f"  {unit} FAILED in the {side.label} run:\n    "
                 + trace.strip().replace("\n", "\n    ")
             )
-            failed.append(Row(dataset, "(run failed)", "-", {}, False, f"{side.label}: {last}"))
+            failed.append(Row(unit, "(run failed)", "-", {}, False, f"{side.label}: {last}"))
     rows = compare(*results) + failed
     print()
     print(f"baseline {sides[0].description} vs candidate {sides[1].description}")
