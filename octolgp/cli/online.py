@@ -58,11 +58,56 @@ def _recording(args: argparse.Namespace, dim: int) -> tuple[Any, str | None]:
     return rec, url
 
 
+def _sink(rec: Any, args: argparse.Namespace) -> Any:
+    """The Rerun sink of ``run``'s recording, with the ``--rerun-*`` options."""
+    from octolgp.sinks.rerun import RerunSink
+
+    return RerunSink(rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty, blueprint=False)
+
+
+def _reopen(out: Path, config: Any, config_file: Path, given: str | None) -> Any:
+    """The map file ``out`` reopened for ``--resume``, checked against the scans' config.
+
+    Its own config is written beside it (``given``: the ``--config`` file, never rewritten).
+    """
+    from octolgp.cli.configs import write_config
+    from octolgp.mapping.online import OnlineMap
+
+    m = OnlineMap.open(out)
+    if m.config.dim != config.dim or m.config.resolution != config.resolution:
+        m.close()
+        raise OctolgpError(
+            f"--resume: {str(out)!r} is a {m.config.dim}D map at {m.config.resolution:g} m, "
+            f"the scans are {config.dim}D and --resolution is {config.resolution:g} m"
+        )
+    try:
+        write_config(m.config, config_file, given)
+    except OctolgpError:
+        m.close()
+        raise
+    return m
+
+
+def _insert_all(m: Any, scans: Iterator[Any], quiet: bool) -> int:
+    """Insert the scans one by one (a progress bar in scans/s), then flush the bootstrap.
+
+    Returns the kernel matrices repaired by jitter.
+    """
+    from tqdm import tqdm
+
+    bar = tqdm(scans, unit="scan", disable=quiet or None, dynamic_ncols=True)
+    repaired = 0
+    for scan in bar:  # one iteration per scan
+        update = m.insert_scan(scan)
+        repaired += update.repaired
+        bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
+    last = m.flush()
+    return repaired + (0 if last is None else last.repaired)
+
+
 def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> int:
     """Insert scans one by one into a new map file (progress bar in scans/s)."""
     import itertools
-
-    from tqdm import tqdm
 
     from octolgp.cli.configs import config_path, resolve_config, write_config
     from octolgp.mapping.online import OnlineMap
@@ -81,30 +126,12 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
     if not resume:
         write_config(config, config_file, args.config)
     rec, url = _recording(args, config.dim)
-    sink = None
-    if rec is not None:
-        from octolgp.sinks.rerun import RerunSink
-
-        sink = RerunSink(
-            rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty, blueprint=False
-        )
+    sink = None if rec is None else _sink(rec, args)
     if resume:
-        m = OnlineMap.open(out)
-        if m.config.dim != config.dim or m.config.resolution != config.resolution:
-            m.close()
-            raise OctolgpError(
-                f"--resume: {str(out)!r} is a {m.config.dim}D map at {m.config.resolution:g} m, "
-                f"the scans are {config.dim}D and --resolution is {config.resolution:g} m"
-            )
-        try:
-            write_config(m.config, config_file, args.config)
-        except OctolgpError:
-            m.close()
-            raise
+        m = _reopen(out, config, config_file, args.config)
         m.sink = m.sink if sink is None else sink
-        done = m.n_scans
-        scans = itertools.islice(scans, done, None)  # skip what the map already holds
-        print(f"resuming {out} after {done} scans")
+        scans = itertools.islice(scans, m.n_scans, None)  # skip what the map already holds
+        print(f"resuming {out} after {m.n_scans} scans")
     else:
         for suffix in ("", "-wal", "-shm"):
             Path(str(out) + suffix).unlink(missing_ok=True)
@@ -112,14 +139,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
         m = OnlineMap(config, path=out, sink=sink)
     try:
         with m:
-            bar = tqdm(scans, unit="scan", disable=args.quiet or None, dynamic_ncols=True)
-            repaired = 0
-            for scan in bar:  # one iteration per scan
-                update = m.insert_scan(scan)
-                repaired += update.repaired
-                bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
-            last = m.flush()
-            repaired += 0 if last is None else last.repaired
+            repaired = _insert_all(m, scans, args.quiet)
             n_leaves, n_scans = len(m.store), m.n_scans
     except BaseException:
         if rec is not None:
