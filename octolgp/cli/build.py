@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 from octolgp.cli.scans import first_and_rest
 from octolgp.errors import OctolgpError
@@ -47,14 +48,49 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _build_with_progress(scan_list: list[Any], config: Any, path: Path, args: Any) -> Any:
+    """Build ``--method``'s map file at ``path`` with a progress bar in leaves."""
+    from tqdm import tqdm
+
+    from octolgp.batch.leafmap import build_tiled
+    from octolgp.batch.voxelized import build_voxelized
+
+    bar = tqdm(total=0, unit="leaf", disable=args.quiet or None, dynamic_ncols=True)
+
+    def progress(done: int, total: int) -> None:
+        bar.total = total
+        bar.update(done - bar.n)
+
+    try:
+        if args.method == "leaf":
+            return build_tiled(
+                scan_list,
+                config,
+                path=path,
+                scheduler=args.scheduler,
+                workers=args.workers,
+                n_jobs=args.jobs,
+                progress=progress,
+            )
+        return build_voxelized(
+            scan_list,
+            config,
+            args.method,
+            path=path,
+            progress=progress,
+            scheduler=args.scheduler,
+            n_jobs=args.jobs,
+        )
+    finally:
+        bar.close()
+
+
 def cmd_build(args: argparse.Namespace) -> int:
     """``octolgp build``: batch-build a map file from a whole log, each leaf fitted once."""
     import itertools
     import os
 
     from octolgp.batch.build import SCHEDULED
-    from octolgp.batch.leafmap import build_tiled
-    from octolgp.batch.voxelized import build_voxelized
     from octolgp.cli.configs import config_path, resolve_config, write_config
 
     out = Path(args.out)
@@ -77,37 +113,7 @@ def cmd_build(args: argparse.Namespace) -> int:
     # build beside the target and rename at the end: a killed build leaves no half map
     partial = out.with_name(out.name + ".partial")
     partial.unlink(missing_ok=True)
-    from tqdm import tqdm
-
-    bar = tqdm(total=0, unit="leaf", disable=args.quiet or None, dynamic_ncols=True)
-
-    def progress(done: int, total: int) -> None:
-        bar.total = total
-        bar.update(done - bar.n)
-
-    try:
-        if args.method == "leaf":
-            m = build_tiled(
-                scan_list,
-                config,
-                path=partial,
-                scheduler=scheduler,
-                workers=args.workers,
-                n_jobs=args.jobs,
-                progress=progress,
-            )
-        else:
-            m = build_voxelized(
-                scan_list,
-                config,
-                args.method,
-                path=partial,
-                progress=progress,
-                scheduler=scheduler,
-                n_jobs=args.jobs,
-            )
-    finally:
-        bar.close()
+    m = _build_with_progress(scan_list, config, partial, args)
     stats = m.build_stats
     m.close()
     os.replace(partial, out)
