@@ -373,10 +373,53 @@ def evaluate_log(
     OctolgpError
         On fewer than 2 scans, mixed dimensions, bad method names or bad numbers.
     """
-    from octolgp.bench.octomap_ref import octomap_available
     from octolgp.gp.learning import learn_hyperparameters
 
     scan_list = list(scans)
+    wanted = _check_inputs(scan_list, config, methods, seeds, protocol, downsample)
+    report = EvalReport()
+    wanted = _drop_unavailable(report, wanted)
+    report.results = {m: [] for m in wanted}
+    splits = _splits(len(scan_list), leave_one_out, seeds, fraction, run)
+    for index, (name, train_idx, test_idx) in enumerate(splits):
+        test = [scan_list[i] for i in test_idx]
+        points, labels = _test_points(test, protocol, index, short)
+        train = [scan_list[i] for i in train_idx]
+        if downsample is not None:
+            train = [s.downsample(downsample) for s in train]
+        hp = config.hyperparameters
+        if hp is None:
+            if progress:
+                progress(f"{name}: learning hyperparameters")
+            hp = learn_hyperparameters(train[: config.learn_scans], config)
+        fixed = dataclasses.replace(config, hyperparameters=hp)
+        builders = _builders(fixed, n_jobs, fast_online)
+        _record_split(report, name, train, points, labels, hp, config)
+        for method in wanted:
+            if progress:
+                progress(f"{name}: {LABELS[method]} on {len(train)} scans")
+            t0 = time.perf_counter()
+            built = builders[method](train)
+            seconds = time.perf_counter() - t0
+            _score_map(report, built, seconds, name, method, config.resolution, points, labels)
+    return report
+
+
+def _check_inputs(
+    scan_list: list[Scan],
+    config: MapConfig,
+    methods: Sequence[str],
+    seeds: int,
+    protocol: str,
+    downsample: float | None,
+) -> tuple[str, ...]:
+    """Validate :func:`evaluate_log`'s arguments; return the wanted methods in report order.
+
+    Raises
+    ------
+    OctolgpError
+        On fewer than 2 scans, mixed dimensions, bad method names or bad numbers.
+    """
     if len(scan_list) < 2:
         raise OctolgpError(f"eval: needs at least 2 scans, got {len(scan_list)}")
     if any(s.dim != config.dim for s in scan_list):
@@ -390,68 +433,92 @@ def evaluate_log(
         )
     if downsample is not None and not (math.isfinite(downsample) and downsample > 0):
         raise OctolgpError(f"eval: downsample must be a finite number > 0, got {downsample!r}")
-    report = EvalReport()
+    return wanted
+
+
+def _drop_unavailable(report: EvalReport, wanted: tuple[str, ...]) -> tuple[str, ...]:
+    """Drop ``octomap`` from ``wanted`` without ``pyoctomap``, noting why in ``report``."""
+    from octolgp.bench.octomap_ref import octomap_available
+
     if "octomap" in wanted and not octomap_available():
         report.skipped["octomap"] = "pyoctomap is not installed (pip install octolgp[octomap])"
         wanted = tuple(m for m in wanted if m != "octomap")
-    report.results = {m: [] for m in wanted}
+    return wanted
 
-    n = len(scan_list)
+
+def _splits(
+    n: int, leave_one_out: bool, seeds: int, fraction: float, run: int
+) -> list[tuple[str, Any, Any]]:
+    """The splits of ``n`` scans as ``(name, train indices, test indices)``.
+
+    With ``leave_one_out`` each scan is held out once; otherwise each seed draws one
+    :func:`~octolgp.bench.heldout.heldout_split`.
+    """
     if leave_one_out:
-        splits = [(f"scan {i}", np.delete(np.arange(n), i), np.array([i])) for i in range(n)]
-    else:
-        splits = [
-            (f"seed {seed}", *heldout_split(n, fraction=fraction, run=run, seed=seed))
-            for seed in range(seeds)
-        ]
-    for index, (name, train_idx, test_idx) in enumerate(splits):
-        test = [scan_list[i] for i in test_idx]
-        if protocol == "hilbert":
-            points, labels = hilbert_points(test, np.random.default_rng(index), short)
-        else:
-            points, labels = heldout_points(test, np.random.default_rng(index), 1, short)
-        train = [scan_list[i] for i in train_idx]
-        if downsample is not None:
-            train = [s.downsample(downsample) for s in train]
-        hp = config.hyperparameters
-        if hp is None:
-            if progress:
-                progress(f"{name}: learning hyperparameters")
-            hp = learn_hyperparameters(train[: config.learn_scans], config)
-        fixed = dataclasses.replace(config, hyperparameters=hp)
-        builders = _builders(fixed, n_jobs, fast_online)
-        report.splits.append(name)
-        report.n_points.append(int(labels.size))
-        report.n_occupied.append(int(np.count_nonzero(labels)))
-        report.novel.append(novel_fraction(train, points[labels == 1], NOVEL_RADIUS))
-        report.seen_free.append(
-            seen_free_fraction(train, points[labels == 1], NOVEL_RADIUS, config)
+        return [(f"scan {i}", np.delete(np.arange(n), i), np.array([i])) for i in range(n)]
+    return [
+        (f"seed {seed}", *heldout_split(n, fraction=fraction, run=run, seed=seed))
+        for seed in range(seeds)
+    ]
+
+
+def _test_points(
+    test: list[Scan], protocol: str, index: int, short: float
+) -> tuple[FloatArray, NDArray[np.int8]]:
+    """The labelled test points of split ``index``'s held-out scans under ``protocol``."""
+    if protocol == "hilbert":
+        return hilbert_points(test, np.random.default_rng(index), short)
+    return heldout_points(test, np.random.default_rng(index), 1, short)
+
+
+def _record_split(
+    report: EvalReport,
+    name: str,
+    train: list[Scan],
+    points: FloatArray,
+    labels: NDArray[np.int8],
+    hp: Hyperparameters,
+    config: MapConfig,
+) -> None:
+    """Append one split's name, test-point counts, novelty shares and hyperparameters."""
+    report.splits.append(name)
+    report.n_points.append(int(labels.size))
+    report.n_occupied.append(int(np.count_nonzero(labels)))
+    report.novel.append(novel_fraction(train, points[labels == 1], NOVEL_RADIUS))
+    report.seen_free.append(seen_free_fraction(train, points[labels == 1], NOVEL_RADIUS, config))
+    report.hyperparameters.append(hp)
+
+
+def _score_map(
+    report: EvalReport,
+    built: Any,
+    seconds: float,
+    name: str,
+    method: str,
+    resolution: float,
+    points: FloatArray,
+    labels: NDArray[np.int8],
+) -> None:
+    """Score one built map on the test points and append its :class:`SplitResult`.
+
+    The map becomes :attr:`EvalReport.example` when it has voxels and is its method's
+    worst split so far (or the first map with voxels); it is closed once scored.
+    """
+    probs = np.asarray(built.occupancy(points), dtype=np.float64)
+    score = auc(labels, probs)
+    shown = report.example
+    if hasattr(built, "voxels") and (  # the pictures: the worst split's map
+        shown is None or (shown.method == method and score < shown.auc)
+    ):
+        centres, prob = built.voxels()
+        report.example = ExampleSplit(
+            name, method, resolution, centres, prob, points, labels, probs, score
         )
-        report.hyperparameters.append(hp)
-        for method in wanted:
-            if progress:
-                progress(f"{name}: {LABELS[method]} on {len(train)} scans")
-            t0 = time.perf_counter()
-            built = builders[method](train)
-            seconds = time.perf_counter() - t0
-            probs = np.asarray(built.occupancy(points), dtype=np.float64)
-            score = auc(labels, probs)
-            shown = report.example
-            if hasattr(built, "voxels") and (  # the pictures: the worst split's map
-                shown is None or (shown.method == method and score < shown.auc)
-            ):
-                centres, prob = built.voxels()
-                report.example = ExampleSplit(
-                    name, method, config.resolution, centres, prob, points, labels, probs, score
-                )
-            close = getattr(built, "close", None)
-            if close is not None:
-                close()
-            fpr, tpr = _roc(labels, probs)
-            report.results[method].append(
-                SplitResult(score, unknown_fraction(probs), seconds, fpr, tpr)
-            )
-    return report
+    close = getattr(built, "close", None)
+    if close is not None:
+        close()
+    fpr, tpr = _roc(labels, probs)
+    report.results[method].append(SplitResult(score, unknown_fraction(probs), seconds, fpr, tpr))
 
 
 def plot_roc(report: EvalReport, path: str | Path, title: str = "") -> None:
