@@ -465,52 +465,20 @@ class RosbagReader(ScanStream):
         pose_child = ""
         no_pose = ""
         yielded = 0
+        reader = self._open_reader()
         try:
-            reader = self._open()
-            reader.open()
-        except Exception as exc:
-            raise OctolgpError(f"ROS bag {self.path}: unreadable: {_why(exc)}") from None
-        try:
-            wanted = {self.scan_topic}
-            wanted.update(t for t in self._tf_topics if self.pose_source == "tf" or _static(t))
-            if self.pose_source not in (None, "tf"):
-                wanted.add(self.pose_source)
-            connections = [c for c in reader.connections if c.topic in wanted]
-            for topic, index, bag_ns, msg in self._read(reader, connections):
+            for topic, index, bag_ns, msg in self._read(reader, self._connections(reader)):
                 if topic != self.scan_topic:
-                    try:
-                        if topic == self.pose_source:
-                            T = _pose_of(msg, self._types[topic])
-                            poses.add(_stamp_ns(msg.header, bag_ns), T)
-                            pose_child = getattr(msg, "child_frame_id", "").lstrip("/")
-                        else:
-                            self._add_tf(tf, msg, bag_ns, static=_static(topic))
-                    except RosMessageError as exc:
-                        self._bad(topic, index, str(exc))
+                    pose_child = self._note_pose(tf, poses, pose_child, topic, index, bag_ns, msg)
                     continue
                 try:
                     stamp = _stamp_ns(msg.header, bag_ns)
                     source = msg.header.frame_id.lstrip("/")
-                    if self.pose_source is None:
-                        T_world = np.eye(4)
-                    elif self.pose_source == "tf":
-                        assert self.frame is not None
-                        found = tf.lookup(self.frame, source, stamp)
-                        if found is None:
-                            self.unposed += 1
-                            no_pose = f"no tf chain from {self.frame!r} to {source!r}"
-                            continue
-                        T_world = found
-                    else:
-                        pose = poses.at(stamp)
-                        if pose is None:
-                            self.unposed += 1
-                            no_pose = f"no {self.pose_source} pose at or before the scans"
-                            continue
-                        offset = None
-                        if pose_child and pose_child != source:
-                            offset = tf.lookup(pose_child, source, stamp, static_only=True)
-                        T_world = pose if offset is None else pose @ offset
+                    T_world, why = self._world_pose(tf, poses, pose_child, source, stamp)
+                    if T_world is None:
+                        self.unposed += 1
+                        no_pose = why
+                        continue
                     scan = self._to_scan(msg, T_world, stamp)
                 except RosMessageError as exc:
                     self._bad(topic, index, str(exc))
@@ -532,6 +500,78 @@ class RosbagReader(ScanStream):
                 f"ROS bag {self.path}: none of {self.unposed} scans on {self.scan_topic!r} "
                 f"could be posed: {no_pose} (tf frames: {frames})"
             )
+
+    def _open_reader(self) -> Any:
+        """The bag's reader, opened; a bag that cannot be opened raises :class:`OctolgpError`."""
+        try:
+            reader = self._open()
+            reader.open()
+        except Exception as exc:
+            raise OctolgpError(f"ROS bag {self.path}: unreadable: {_why(exc)}") from None
+        return reader
+
+    def _connections(self, reader: Any) -> list[Any]:
+        """The connections to read: the scan topic, the pose source and the tf it needs.
+
+        Without ``pose_source="tf"`` only the static tf topics are read, which still
+        place the scan frame relative to a pose topic's child frame.
+        """
+        wanted = {self.scan_topic}
+        wanted.update(t for t in self._tf_topics if self.pose_source == "tf" or _static(t))
+        if self.pose_source not in (None, "tf"):
+            wanted.add(self.pose_source)
+        return [c for c in reader.connections if c.topic in wanted]
+
+    def _note_pose(
+        self,
+        tf: TfBuffer,
+        poses: _History,
+        pose_child: str,
+        topic: str,
+        index: int,
+        bag_ns: int,
+        msg: Any,
+    ) -> str:
+        """Add a pose or tf message to the history; return the pose topic's child frame.
+
+        The child frame is the one of this message when it is a pose, else
+        ``pose_child`` unchanged; a bad message is raised or counted (:meth:`_bad`).
+        """
+        try:
+            if topic == self.pose_source:
+                T = _pose_of(msg, self._types[topic])
+                poses.add(_stamp_ns(msg.header, bag_ns), T)
+                return str(getattr(msg, "child_frame_id", "").lstrip("/"))
+            self._add_tf(tf, msg, bag_ns, static=_static(topic))
+        except RosMessageError as exc:
+            self._bad(topic, index, str(exc))
+        return pose_child
+
+    def _world_pose(
+        self, tf: TfBuffer, poses: _History, pose_child: str, source: str, stamp: int
+    ) -> tuple[FloatArray | None, str]:
+        """The pose of frame ``source`` in the world at ``stamp``, or ``None`` and why not.
+
+        With no pose source the scans are already in the world frame; with ``"tf"`` the
+        pose is the tf chain from :attr:`frame`; with a pose topic it is the latest pose
+        at or before ``stamp``, times the static tf from the pose's child frame to
+        ``source`` when there is one.
+        """
+        if self.pose_source is None:
+            return np.eye(4), ""
+        if self.pose_source == "tf":
+            assert self.frame is not None
+            found = tf.lookup(self.frame, source, stamp)
+            if found is None:
+                return None, f"no tf chain from {self.frame!r} to {source!r}"
+            return found, ""
+        pose = poses.at(stamp)
+        if pose is None:
+            return None, f"no {self.pose_source} pose at or before the scans"
+        offset = None
+        if pose_child and pose_child != source:
+            offset = tf.lookup(pose_child, source, stamp, static_only=True)
+        return (pose if offset is None else pose @ offset), ""
 
     @staticmethod
     def _add_tf(tf: TfBuffer, msg: Any, bag_ns: int, static: bool) -> None:
