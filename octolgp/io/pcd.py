@@ -132,6 +132,27 @@ def _ints(tokens: list[str], key: str, lo: int) -> tuple[int, ...]:
 
 def _parse_header(fh: IO[bytes]) -> PcdHeader:
     """Parse a header from the start of ``fh``; errors name the line, without the file."""
+    entries, data, line_no = _header_entries(fh)
+    try:
+        for key in ("FIELDS", "SIZE", "TYPE", "WIDTH"):
+            if key not in entries:
+                raise OctolgpError(f"no {key} line")
+        fields, sizes, types, counts = _field_layout(entries)
+        width, height = _cloud_size(entries)
+        viewpoint = _viewpoint(entries)
+    except OctolgpError as exc:
+        raise OctolgpError(f"{line_no}: {exc}") from None
+    return PcdHeader(
+        fields, sizes, types, counts, width, height, viewpoint, data, fh.tell(), line_no
+    )
+
+
+def _header_entries(fh: IO[bytes]) -> tuple[dict[str, list[str]], str, int]:
+    """Read the header lines up to ``DATA``: each keyword's values, the data kind, its line.
+
+    Comments and blank lines are skipped; an unknown or repeated keyword, binary bytes,
+    an overlong line or a header without a valid ``DATA`` line raise with the line number.
+    """
     entries: dict[str, list[str]] = {}
     line_no = 0
     while True:
@@ -159,42 +180,54 @@ def _parse_header(fh: IO[bytes]) -> PcdHeader:
     data = tokens[1].lower() if len(tokens) == 2 else ""
     if data not in _DATA_KINDS:
         raise OctolgpError(f"{line_no}: DATA must be one of {_DATA_KINDS}, got {text.strip()!r}")
-    where = str(line_no)
+    return entries, data, line_no
+
+
+def _field_layout(
+    entries: dict[str, list[str]],
+) -> tuple[tuple[str, ...], tuple[int, ...], tuple[str, ...], tuple[int, ...]]:
+    """The ``FIELDS``, ``SIZE``, ``TYPE`` and ``COUNT`` of a point, checked against each other.
+
+    Every field needs a supported type and size, and ``x``, ``y``, ``z`` must each appear
+    once with ``COUNT 1``; ``COUNT`` defaults to 1 per field.
+    """
+    fields = tuple(entries["FIELDS"])
+    n = len(fields)
+    sizes = _ints(entries["SIZE"], "SIZE", 1)
+    types = tuple(t.upper() for t in entries["TYPE"])
+    counts = _ints(entries.get("COUNT", ["1"] * n), "COUNT", 1)
+    if not n or not len(sizes) == len(types) == len(counts) == n:
+        raise OctolgpError(f"FIELDS, SIZE, TYPE and COUNT need {n} entries each")
+    for name, t, s in zip(fields, types, sizes, strict=True):
+        if (t, s) not in _TYPES:
+            raise OctolgpError(f"field {name!r}: unsupported TYPE {t} SIZE {s}")
+    for axis in "xyz":
+        if fields.count(axis) != 1 or counts[fields.index(axis)] != 1:
+            raise OctolgpError(f"needs exactly one field {axis!r} with COUNT 1")
+    return fields, sizes, types, counts
+
+
+def _cloud_size(entries: dict[str, list[str]]) -> tuple[int, int]:
+    """``WIDTH`` and ``HEIGHT`` (default 1), which ``POINTS``, when given, must multiply to."""
+    (width,) = _ints(entries["WIDTH"], "WIDTH", 0)
+    (height,) = _ints(entries.get("HEIGHT", ["1"]), "HEIGHT", 1)
+    if "POINTS" in entries and _ints(entries["POINTS"], "POINTS", 0) != (width * height,):
+        raise OctolgpError(f"POINTS {entries['POINTS']} != WIDTH * HEIGHT = {width * height}")
+    return width, height
+
+
+def _viewpoint(entries: dict[str, list[str]]) -> tuple[float, ...]:
+    """``VIEWPOINT``: 7 finite numbers with a non-zero quaternion; the identity pose if absent."""
+    vp = entries.get("VIEWPOINT", ["0", "0", "0", "1", "0", "0", "0"])
     try:
-        for key in ("FIELDS", "SIZE", "TYPE", "WIDTH"):
-            if key not in entries:
-                raise OctolgpError(f"no {key} line")
-        fields = tuple(entries["FIELDS"])
-        n = len(fields)
-        sizes = _ints(entries["SIZE"], "SIZE", 1)
-        types = tuple(t.upper() for t in entries["TYPE"])
-        counts = _ints(entries.get("COUNT", ["1"] * n), "COUNT", 1)
-        if not n or not len(sizes) == len(types) == len(counts) == n:
-            raise OctolgpError(f"FIELDS, SIZE, TYPE and COUNT need {n} entries each")
-        for name, t, s in zip(fields, types, sizes, strict=True):
-            if (t, s) not in _TYPES:
-                raise OctolgpError(f"field {name!r}: unsupported TYPE {t} SIZE {s}")
-        for axis in "xyz":
-            if fields.count(axis) != 1 or counts[fields.index(axis)] != 1:
-                raise OctolgpError(f"needs exactly one field {axis!r} with COUNT 1")
-        (width,) = _ints(entries["WIDTH"], "WIDTH", 0)
-        (height,) = _ints(entries.get("HEIGHT", ["1"]), "HEIGHT", 1)
-        if "POINTS" in entries and _ints(entries["POINTS"], "POINTS", 0) != (width * height,):
-            raise OctolgpError(f"POINTS {entries['POINTS']} != WIDTH * HEIGHT = {width * height}")
-        vp = entries.get("VIEWPOINT", ["0", "0", "0", "1", "0", "0", "0"])
-        try:
-            viewpoint = tuple(float(v) for v in vp)
-        except ValueError:
-            raise OctolgpError(f"VIEWPOINT is not numeric: {' '.join(vp)!r}") from None
-        if len(viewpoint) != 7 or not all(map(math.isfinite, viewpoint)):
-            raise OctolgpError(f"VIEWPOINT needs 7 finite numbers, got {' '.join(vp)!r}")
-        if not np.linalg.norm(viewpoint[3:]) > 0:
-            raise OctolgpError("VIEWPOINT quaternion is zero")
-    except OctolgpError as exc:
-        raise OctolgpError(f"{where}: {exc}") from None
-    return PcdHeader(
-        fields, sizes, types, counts, width, height, viewpoint, data, fh.tell(), line_no
-    )
+        viewpoint = tuple(float(v) for v in vp)
+    except ValueError:
+        raise OctolgpError(f"VIEWPOINT is not numeric: {' '.join(vp)!r}") from None
+    if len(viewpoint) != 7 or not all(map(math.isfinite, viewpoint)):
+        raise OctolgpError(f"VIEWPOINT needs 7 finite numbers, got {' '.join(vp)!r}")
+    if not np.linalg.norm(viewpoint[3:]) > 0:
+        raise OctolgpError("VIEWPOINT quaternion is zero")
+    return viewpoint
 
 
 def read_pcd_header(path: str | Path) -> PcdHeader:

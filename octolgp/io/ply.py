@@ -91,14 +91,8 @@ def _parse_header(fh: IO[bytes]) -> PlyHeader:
     elements: list[tuple[str, int, list[tuple[str, str, str | None]]]] = []
     line_no = 1
     while True:
-        raw = fh.readline(_MAX_LINE)
         line_no += 1
-        if not raw or line_no > _MAX_HEADER_LINES:
-            raise OctolgpError(f"{line_no}: no end_header line")
-        try:
-            tokens = raw.decode("ascii").split()
-        except UnicodeDecodeError:
-            raise OctolgpError(f"{line_no}: binary bytes in the header") from None
+        tokens = _header_tokens(fh, line_no)
         if not tokens:
             continue
         key = tokens[0]
@@ -106,13 +100,7 @@ def _parse_header(fh: IO[bytes]) -> PlyHeader:
             break
         if key in ("comment", "obj_info"):
             if len(tokens) == 5 and tokens[1] == "origin":
-                try:
-                    x, y, z = (float(t) for t in tokens[2:])
-                except ValueError:
-                    raise OctolgpError(f"{line_no}: non-numeric origin") from None
-                if not all(map(math.isfinite, (x, y, z))):
-                    raise OctolgpError(f"{line_no}: non-finite origin")
-                origin = (x, y, z)
+                origin = _origin(tokens[2:], line_no)
         elif key == "format":
             if fmt is not None or len(tokens) != 3 or tokens[1] not in _FORMATS:
                 raise OctolgpError(f"{line_no}: bad format line {' '.join(tokens)[:60]!r}")
@@ -122,19 +110,64 @@ def _parse_header(fh: IO[bytes]) -> PlyHeader:
                 raise OctolgpError(f"{line_no}: bad element line {' '.join(tokens)[:60]!r}")
             elements.append((tokens[1], int(tokens[2]), []))
         elif key == "property":
-            if not elements:
-                raise OctolgpError(f"{line_no}: property before any element")
-            if len(tokens) == 3 and tokens[1] in _TYPES:
-                elements[-1][2].append((tokens[2], tokens[1], None))
-            elif len(tokens) == 5 and tokens[1] == "list" and {*tokens[2:4]} <= _TYPES.keys():
-                elements[-1][2].append((tokens[4], tokens[3], tokens[2]))
-            else:
-                raise OctolgpError(f"{line_no}: bad property line {' '.join(tokens)[:60]!r}")
+            _add_property(elements, tokens, line_no)
         else:
             raise OctolgpError(f"{line_no}: unknown PLY header keyword {key[:40]!r}")
     if fmt is None:
         raise OctolgpError(f"{line_no}: no format line")
     elems = tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements)
+    _check_vertex(elems, line_no)
+    return PlyHeader(fmt, elems, origin, fh.tell(), line_no)
+
+
+def _header_tokens(fh: IO[bytes], line_no: int) -> list[str]:
+    """The words of header line ``line_no``, read from ``fh``; empty for a blank line.
+
+    A header that ends (or runs past :data:`_MAX_HEADER_LINES`) before ``end_header``,
+    or a line that is not ASCII, raises.
+    """
+    raw = fh.readline(_MAX_LINE)
+    if not raw or line_no > _MAX_HEADER_LINES:
+        raise OctolgpError(f"{line_no}: no end_header line")
+    try:
+        return raw.decode("ascii").split()
+    except UnicodeDecodeError:
+        raise OctolgpError(f"{line_no}: binary bytes in the header") from None
+
+
+def _origin(words: list[str], line_no: int) -> tuple[float, float, float]:
+    """The sensor origin ``X Y Z`` of a ``comment``/``obj_info origin X Y Z`` line, finite."""
+    try:
+        x, y, z = (float(t) for t in words)
+    except ValueError:
+        raise OctolgpError(f"{line_no}: non-numeric origin") from None
+    if not all(map(math.isfinite, (x, y, z))):
+        raise OctolgpError(f"{line_no}: non-finite origin")
+    return (x, y, z)
+
+
+def _add_property(
+    elements: list[tuple[str, int, list[tuple[str, str, str | None]]]],
+    tokens: list[str],
+    line_no: int,
+) -> None:
+    """Append a ``property`` line to the last element as ``(name, type, list_count_type)``.
+
+    A scalar property has no count type (``None``); a list property's type is that of
+    its items.
+    """
+    if not elements:
+        raise OctolgpError(f"{line_no}: property before any element")
+    if len(tokens) == 3 and tokens[1] in _TYPES:
+        elements[-1][2].append((tokens[2], tokens[1], None))
+    elif len(tokens) == 5 and tokens[1] == "list" and {*tokens[2:4]} <= _TYPES.keys():
+        elements[-1][2].append((tokens[4], tokens[3], tokens[2]))
+    else:
+        raise OctolgpError(f"{line_no}: bad property line {' '.join(tokens)[:60]!r}")
+
+
+def _check_vertex(elems: tuple[PlyElement, ...], line_no: int) -> None:
+    """Require one ``vertex`` element with one scalar ``x``, ``y`` and ``z`` property each."""
     vertex = [e for e in elems if e.name == "vertex"]
     if len(vertex) != 1:
         raise OctolgpError(f"{line_no}: needs one vertex element, found {len(vertex)}")
@@ -144,7 +177,6 @@ def _parse_header(fh: IO[bytes]) -> PlyHeader:
             raise OctolgpError(f"{line_no}: vertex needs one property {axis!r}")
     if any(p[2] is not None for p in vertex[0].properties):
         raise OctolgpError(f"{line_no}: vertex list properties are not supported")
-    return PlyHeader(fmt, elems, origin, fh.tell(), line_no)
 
 
 def read_ply_header(path: str | Path) -> PlyHeader:
