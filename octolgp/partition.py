@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from octolgp.config import MapConfig
+from octolgp.config import MapConfig, PartitionConfig
 from octolgp.geometry.boxes import clip_to_box
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray, TrainingData
@@ -187,18 +187,7 @@ def partition(
         return []
     own_seg = data.seg_hit >= 0
     weight = 1 + np.bincount(data.seg_hit[own_seg], minlength=hits.shape[0]).astype(np.int64)
-
-    # 1. coarse boxes
-    box = np.floor(hits / pc.box_size).astype(np.int64)
-    _, box_of = np.unique(box, axis=0, return_inverse=True)
-    box_of = box_of.ravel()
-    order = np.argsort(box_of, kind="stable")
-    bounds = np.flatnonzero(np.diff(box_of[order])) + 1
-    groups: list[IntArray] = []
-    # 2. iterative k-means within each box
-    for members in np.split(order, bounds):
-        for g in split_under_cap(hits[members], weight[members], pc.max_cluster_size, pc.seed):
-            groups.append(members[g])
+    groups = _groups_under_cap(hits, weight, pc)
 
     # 3. regions: hit boxes and Voronoi cells in the data's bounding box, grown by overlap
     centres = np.array([hits[g].mean(axis=0) for g in groups])
@@ -213,32 +202,103 @@ def partition(
     rng = np.random.default_rng(pc.seed)
     clusters = []
     for k, g in enumerate(groups):  # one iteration per cluster
-        # the Voronoi cell, but no further than half a coarse box beyond the hits
-        hit_lo, hit_hi = hits[g].min(axis=0), hits[g].max(axis=0)
-        lo = np.minimum(hit_lo, np.maximum(vor_lo[k], hit_lo - reach))
-        hi = np.maximum(hit_hi, np.minimum(vor_hi[k], hit_hi + reach))
-        margin = frac * np.maximum(hi - lo, min_extent)
-        lo, hi = lo - margin, hi + margin
-        inside = np.flatnonzero(((hits >= lo) & (hits <= hi)).all(axis=1))
-        shared = np.setdiff1d(inside, g, assume_unique=True)
-        room = max(pc.max_cluster_size - g.size, 0)
-        if shared.size > room:
-            shared = rng.choice(shared, room, replace=False)
-        inside = np.union1d(g, shared)
-        s, e, keep = clip_to_box(data.seg_start, data.seg_end, lo, hi)
-        keep &= np.linalg.norm(e - s, axis=1) > min_piece
-        pieces = np.flatnonzero(keep)
-        if pieces.size > pc.max_cluster_size:
-            pieces = np.sort(rng.choice(pieces, pc.max_cluster_size, replace=False))
+        lo, hi = _region(hits[g], vor_lo[k], vor_hi[k], reach, frac, min_extent)
+        inside = _region_hits(hits, g, lo, hi, pc.max_cluster_size, rng)
+        s, e = _region_pieces(data, lo, hi, min_piece, pc.max_cluster_size, rng)
         clusters.append(
             Cluster(
                 centre=centres[k],
                 lo=lo,
                 hi=hi,
                 hits=inside.astype(np.int64),
-                seg_start=s[pieces],
-                seg_end=e[pieces],
+                seg_start=s,
+                seg_end=e,
                 n_own=int(weight[g].sum()),
             )
         )
     return clusters
+
+
+def _groups_under_cap(hits: FloatArray, weight: IntArray, pc: PartitionConfig) -> list[IntArray]:
+    """Steps 1 and 2: the hits' coarse boxes, each split by iterative k-means under the cap.
+
+    Returns
+    -------
+    list of ndarray
+        Index arrays into ``hits``, one per cluster, boxes in lexicographic order.
+    """
+    # 1. coarse boxes
+    box = np.floor(hits / pc.box_size).astype(np.int64)
+    _, box_of = np.unique(box, axis=0, return_inverse=True)
+    box_of = box_of.ravel()
+    order = np.argsort(box_of, kind="stable")
+    bounds = np.flatnonzero(np.diff(box_of[order])) + 1
+    groups: list[IntArray] = []
+    # 2. iterative k-means within each box
+    for members in np.split(order, bounds):
+        for g in split_under_cap(hits[members], weight[members], pc.max_cluster_size, pc.seed):
+            groups.append(members[g])
+    return groups
+
+
+def _region(
+    own: FloatArray,
+    vor_lo: FloatArray,
+    vor_hi: FloatArray,
+    reach: float,
+    frac: float,
+    min_extent: float,
+) -> tuple[FloatArray, FloatArray]:
+    """A cluster's region: its hits' box and Voronoi cell box, grown by ``frac`` per side.
+
+    The Voronoi part reaches at most ``reach`` beyond the hits ``own``, and the margin is
+    ``frac`` times the region's extent, but at least ``frac * min_extent``.
+    """
+    # the Voronoi cell, but no further than half a coarse box beyond the hits
+    hit_lo, hit_hi = own.min(axis=0), own.max(axis=0)
+    lo = np.minimum(hit_lo, np.maximum(vor_lo, hit_lo - reach))
+    hi = np.maximum(hit_hi, np.minimum(vor_hi, hit_hi + reach))
+    margin = frac * np.maximum(hi - lo, min_extent)
+    return lo - margin, hi + margin
+
+
+def _region_hits(
+    hits: FloatArray,
+    g: IntArray,
+    lo: FloatArray,
+    hi: FloatArray,
+    cap: int,
+    rng: np.random.Generator,
+) -> IntArray:
+    """The cluster's own hits ``g`` and the other hits in ``[lo, hi]``, sorted.
+
+    Shared hits are thinned at random so that the cluster holds at most ``cap`` hits
+    (its own hits are always kept).
+    """
+    inside = np.flatnonzero(((hits >= lo) & (hits <= hi)).all(axis=1))
+    shared = np.setdiff1d(inside, g, assume_unique=True)
+    room = max(cap - g.size, 0)
+    if shared.size > room:
+        shared = rng.choice(shared, room, replace=False)
+    return np.union1d(g, shared)
+
+
+def _region_pieces(
+    data: TrainingData,
+    lo: FloatArray,
+    hi: FloatArray,
+    min_piece: float,
+    cap: int,
+    rng: np.random.Generator,
+) -> tuple[FloatArray, FloatArray]:
+    """The free segments clipped to ``[lo, hi]``: starts and ends of the pieces kept.
+
+    Pieces no longer than ``min_piece`` are dropped, and the rest thinned at random
+    to at most ``cap``, in segment order.
+    """
+    s, e, keep = clip_to_box(data.seg_start, data.seg_end, lo, hi)
+    keep &= np.linalg.norm(e - s, axis=1) > min_piece
+    pieces = np.flatnonzero(keep)
+    if pieces.size > cap:
+        pieces = np.sort(rng.choice(pieces, cap, replace=False))
+    return s[pieces], e[pieces]
