@@ -48,7 +48,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
-def _build_with_progress(scan_list: list[Any], config: Any, path: Path, args: Any) -> Any:
+def _build_with_progress(
+    scan_list: list[Any], config: Any, path: Path, args: argparse.Namespace
+) -> Any:
     """Build ``--method``'s map file at ``path`` with a progress bar in leaves."""
     from tqdm import tqdm
 
@@ -127,19 +129,43 @@ def cmd_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_eval_numbers(args: argparse.Namespace) -> None:
+    """Reject a ``--fraction`` outside (0, 1) and a ``--short`` that is negative or not finite."""
+    if not (0.0 < args.fraction < 1.0):
+        raise OctolgpError(f"--fraction must be in (0, 1), got {args.fraction}")
+    if not (args.short >= 0.0 and args.short < float("inf")):
+        raise OctolgpError(f"--short must be a finite number >= 0, got {args.short}")
+
+
+def _draw_report(report: Any, out: Path, name: str) -> list[str]:
+    """Draw the report's pictures in ``out``; return their file names.
+
+    ``roc.png`` always; with an example map, ``errors.png`` and, for a 2D map, ``map.png``.
+    """
+    from octolgp.bench.evaluation import plot_errors, plot_roc
+    from octolgp.export.image import write_png
+
+    plot_roc(report, out / "roc.png", title=f"{name}: held-out scans")
+    pictures = ["roc.png"]
+    example = report.example
+    if example is not None and example.centres.shape[0]:  # the map and its errors
+        plot_errors(example, out / "errors.png", title=f"{name}, {example.split}: held-out errors")
+        pictures.append("errors.png")
+        if example.centres.shape[1] == 2:
+            write_png(out / "map.png", example.centres, example.prob, example.resolution)
+            pictures.append("map.png")
+    return pictures
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
     """``octolgp eval``: held-out-scan ROC AUC of every method; roc.png, results.json, table.md."""
     import itertools
     import json
 
-    from octolgp.bench.evaluation import evaluate_log, plot_errors, plot_roc
+    from octolgp.bench.evaluation import evaluate_log
     from octolgp.cli.configs import config_path, resolve_config, write_config
-    from octolgp.export.image import write_png
 
-    if not (0.0 < args.fraction < 1.0):
-        raise OctolgpError(f"--fraction must be in (0, 1), got {args.fraction}")
-    if not (args.short >= 0.0 and args.short < float("inf")):
-        raise OctolgpError(f"--short must be a finite number >= 0, got {args.short}")
+    _check_eval_numbers(args)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
     scan_list = list(itertools.islice(scans, args.limit))
@@ -168,15 +194,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     write_config(config, config_path(out, folder=True), args.config)
     name = Path(args.scans).name
-    plot_roc(report, out / "roc.png", title=f"{name}: held-out scans")
-    pictures = ["roc.png"]
-    example = report.example
-    if example is not None and example.centres.shape[0]:  # the map and its errors
-        plot_errors(example, out / "errors.png", title=f"{name}, {example.split}: held-out errors")
-        pictures.append("errors.png")
-        if example.centres.shape[1] == 2:
-            write_png(out / "map.png", example.centres, example.prob, example.resolution)
-            pictures.append("map.png")
+    pictures = _draw_report(report, out, name)
     (out / "results.json").write_text(json.dumps(report.to_dict(), indent=2) + "\n")
     table = (
         f"{name}, {len(scan_list)} scans, resolution {config.resolution} m, "
