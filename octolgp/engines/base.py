@@ -11,8 +11,10 @@ config.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable
+import time
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -124,6 +126,16 @@ class LeafEngine(Protocol):
     def decode(self, blob: bytes, dim: int) -> LeafEvidence:
         """Inverse of :meth:`encode`; raises ``OctolgpError`` on a corrupt blob."""
         ...
+
+
+@contextmanager
+def stage(stats: dict[str, float], name: str) -> Iterator[None]:
+    """Add the seconds the block takes to ``stats[name]`` (a step's stage timings)."""
+    t = time.perf_counter()
+    try:
+        yield
+    finally:
+        stats[name] = stats.get(name, 0.0) + time.perf_counter() - t
 
 
 def evidence_arrays(evidence: LeafEvidence) -> tuple[np.ndarray, ...]:

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import dataclasses
 import struct
-import time
 from collections.abc import Iterable
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -30,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
-from octolgp.engines.base import Evidence, LeafFit, Lookup, read_arrays, with_values
+from octolgp.engines.base import Evidence, LeafFit, Lookup, read_arrays, stage, with_values
 from octolgp.engines.kernel_cache import KernelCache, leaf_blocks
 from octolgp.errors import OctolgpError
 from octolgp.gp.clusters import cluster_tree, fit_clusters, predict_nearest
@@ -298,13 +297,10 @@ class ExactEngine:
 
     def evidence(self, scans: list[Scan], lookup: Lookup, stats: dict[str, float]) -> Evidence:
         """Scans → hits and free segments → the leaves that gain items."""
-        t = time.perf_counter()
-        data = make_training_data(scans, self._raw)
-        stats["training"] = stats.get("training", 0.0) + time.perf_counter() - t
-        t = time.perf_counter()
-        evidence = gather_evidence(data, self.grid, self.config, lookup)
-        stats["assign"] = stats.get("assign", 0.0) + time.perf_counter() - t
-        return evidence
+        with stage(stats, "training"):
+            data = make_training_data(scans, self._raw)
+        with stage(stats, "assign"):
+            return gather_evidence(data, self.grid, self.config, lookup)
 
     def fit(
         self,

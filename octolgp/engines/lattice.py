@@ -20,7 +20,6 @@ from __future__ import annotations
 import functools
 import itertools
 import struct
-import time
 from collections.abc import Iterable
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -29,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.config import Hyperparameters, MapConfig
-from octolgp.engines.base import Evidence, LeafFit, Lookup, read_arrays, with_values
+from octolgp.engines.base import Evidence, LeafFit, Lookup, read_arrays, stage, with_values
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import pack_keys, unpack_keys
 from octolgp.gp.lattice import (
@@ -151,8 +150,9 @@ def gather_observations(
     for j, key in enumerate(touched.tolist()):  # one iteration per touched leaf
         leaf = lookup(key)
         current.append(leaf)
-        if leaf is not None and lattice_evidence(leaf).counts.shape[1] == n_halo:
-            old[j] = lattice_evidence(leaf).counts
+        counts = None if leaf is None else lattice_evidence(leaf).counts
+        if counts is not None and counts.shape[1] == n_halo:
+            old[j] = counts
     cap = config.lattice.evidence_cap
     before_h = old[inverse, 0, flat].astype(np.int64)
     before_f = old[inverse, 1, flat].astype(np.int64)
@@ -298,13 +298,10 @@ class LatticeEngine:
 
     def evidence(self, scans: list[Scan], lookup: Lookup, stats: dict[str, float]) -> Evidence:
         """Scans → voxel observations → the leaves whose counts move."""
-        t = time.perf_counter()
-        obs = observe(scans, self.config)
-        stats["training"] = stats.get("training", 0.0) + time.perf_counter() - t
-        t = time.perf_counter()
-        evidence = gather_observations(obs, self.grid, self.config, lookup)
-        stats["assign"] = stats.get("assign", 0.0) + time.perf_counter() - t
-        return evidence
+        with stage(stats, "training"):
+            obs = observe(scans, self.config)
+        with stage(stats, "assign"):
+            return gather_observations(obs, self.grid, self.config, lookup)
 
     def fit(
         self,
