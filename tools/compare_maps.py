@@ -150,31 +150,21 @@ def make_simulation(tree: Path, out: Path) -> None:
         f"sys.exit(octolgp.cli.main(['simulate', 'paper2d', '--out', {str(out)!r}, "
         "'--seed', '0']))"
     )
-    done = subprocess.run(
-        [sys.executable, "-P", "-c", code],
-        cwd=tree,
-        env=_env(tree),
-        capture_output=True,
-        text=True,
-    )
-    print("  " + (done.stdout + done.stderr).strip().replace("\n", "\n  "))
-    if done.returncode != 0:
-        raise SystemExit(f"simulate paper2d failed (exit {done.returncode})")
+    _run_in(tree, [sys.executable, "-P", "-c", code], "simulate paper2d")
 
 
 def make_dynamic3d(tree: Path, out: Path) -> None:
     """Write the dynamic3d scans with the driver run against the octolgp under ``tree``."""
     cmd = [sys.executable, "-P", str(DRIVER), "--tree", str(tree), "--repo", str(REPO)]
-    done = subprocess.run(
-        [*cmd, "--make-dynamic3d", str(out)],
-        cwd=tree,
-        env=_env(tree),
-        capture_output=True,
-        text=True,
-    )
+    _run_in(tree, [*cmd, "--make-dynamic3d", str(out)], "writing the dynamic3d scans")
+
+
+def _run_in(tree: Path, cmd: list[str], what: str) -> None:
+    """Run ``cmd`` against the octolgp under ``tree``, echo its output, stop if it fails."""
+    done = subprocess.run(cmd, cwd=tree, env=_env(tree), capture_output=True, text=True)
     print("  " + (done.stdout + done.stderr).strip().replace("\n", "\n  "))
     if done.returncode != 0:
-        raise SystemExit(f"writing the dynamic3d scans failed (exit {done.returncode})")
+        raise SystemExit(f"{what} failed (exit {done.returncode})")
 
 
 def start_driver(
