@@ -19,7 +19,7 @@ from octolgp.engines.base import evidence_arrays
 from octolgp.export.octomap_read import decode_bt, read_bt_header
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
-from octolgp.persist.mapfile import decode_leaf, encode_leaf
+from octolgp.persist.mapfile import VERSION, decode_leaf, encode_leaf
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
 HP = Hyperparameters(
@@ -63,7 +63,7 @@ def test_leaf_encoding_round_trips_and_rejects_corruption(engine: str) -> None:
         assert encode_leaf(back, codec) == blob
         assert evidence_bytes(back) == evidence_bytes(leaf)
         assert back.pruned == leaf.pruned
-        with pytest.raises(OctolgpError, match=r"bytes|header|truncated"):
+        with pytest.raises(OctolgpError, match=r"bytes|header|truncated|checksum"):
             decode_leaf(blob[:-3], codec, grid)
         with pytest.raises(OctolgpError, match="header"):
             decode_leaf(b"XXXX" + blob[4:], codec, grid)
@@ -366,7 +366,7 @@ def test_a_version_2_map_file_reopens_as_it_did(tmp_path: Path) -> None:
         assert _values(m) == before
         m.insert_scan(_scans()[3])
     con = sqlite3.connect(path)  # a write brings the file to today's version
-    assert con.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0] == "3"
+    assert con.execute("SELECT value FROM meta WHERE key = 'version'").fetchone()[0] == str(VERSION)
     con.close()
 
 

@@ -264,8 +264,8 @@ def test_threads_give_identical_maps(engine: str) -> None:
     b = OnlineMap(config2d(engine=engine, n_jobs=2))
     a.insert_scans(scans)
     b.insert_scans(scans)
-    b.close()
     assert_same_map(a, b)
+    b.close()
 
 
 def test_leaf_over_the_cap_is_split_by_kmeans() -> None:

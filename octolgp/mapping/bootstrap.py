@@ -61,6 +61,12 @@ class Bootstrap(Generic[M]):
         scans, self.scans, self._provisional = self.scans, [], None
         return scans
 
+    def restore(self, scans: list[Scan]) -> None:
+        """Put back the buffer as it was before a step that failed."""
+        same = len(scans) == len(self.scans)
+        if not same or any(a is not b for a, b in zip(scans, self.scans, strict=True)):
+            self.scans, self._provisional = list(scans), None
+
     def corrected(self, scans: Mapping[int, Scan]) -> None:
         """Replace buffered scans by number (from 1) with their corrected versions."""
         self.scans = [scans.get(i, s) for i, s in enumerate(self.scans, start=1)]

@@ -28,12 +28,15 @@ those k scans and the config only: queries, :meth:`~OnlineMap.save`,
 
 from __future__ import annotations
 
+import functools
 import logging
+import threading
 import time
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
 
 from numpy.typing import ArrayLike
 
@@ -68,7 +71,35 @@ CHUNK_BEAMS = 60_000
 
 FIT_BATCH_ITEMS = 160_000
 """Training items (summed over leaves) fitted per batch by :meth:`OnlineMap.insert_batch`
-in this process; each batch is stored and committed before the next."""
+in this process; each batch is stored (and written, uncommitted) before the next."""
+
+R = TypeVar("R")
+
+
+def _step_of_state(method: Callable[..., R]) -> Callable[..., R]:
+    """Run a method that changes the map as one step: alone, on an open map, all or nothing.
+
+    The call holds the map's lock (calls from several threads run one at a time), is
+    refused on a closed, read-only or broken map, and when it raises before any write
+    reached the store the map's counters and learning buffer are put back as they
+    were, so the map is exactly as before the call.
+    """
+
+    @functools.wraps(method)
+    def step(self: OnlineMap, *args: Any, **kwargs: Any) -> R:
+        with self._lock:
+            self._check(method.__name__, write=True)
+            before = (self.n_scans, self.hyperparameters, list(self._bootstrap.scans))
+            writes = self._writes
+            try:
+                return method(self, *args, **kwargs)
+            except BaseException:
+                if self._writes == writes:
+                    self.n_scans, self.hyperparameters = before[0], before[1]
+                    self._bootstrap.restore(before[2])
+                raise
+
+    return step
 
 
 class OnlineMap(MapReads):
@@ -144,6 +175,11 @@ class OnlineMap(MapReads):
         self._bootstrap: Bootstrap[OnlineMap] = Bootstrap(self.config)
         self._workers = Workers(self.config.n_jobs)
         self._extents = JournalExtents(self.grid)
+        self._lock = threading.RLock()
+        self._closed = False
+        self._broken: str | None = None  # why the map refuses every call
+        self._writes = 0  # steps applied to the store
+        self.read_only = storage is not None and storage.read_only
         self._file: MapStorage | None = storage
         if storage is not None:
             self._resume(storage)
@@ -169,43 +205,131 @@ class OnlineMap(MapReads):
 
     # ------------------------------------------------------------------ life cycle
     @classmethod
-    def open(cls, path: str | Path) -> OnlineMap:
+    def open(cls, path: str | Path, *, read_only: bool = False) -> OnlineMap:
         """Reopen a map persisted with ``OnlineMap(config, path=...)`` or :meth:`save`.
 
         The map uses the config stored in the file, whatever this code's defaults are.
+
+        Parameters
+        ----------
+        path : str or Path
+        read_only : bool, optional
+            ``False`` (default): this map is the file's one writer until
+            :meth:`close`, and goes on inserting into it. ``True``: a reader of the
+            file's last committed scan (a snapshot, whatever a writer does meanwhile);
+            every write is refused and the file's bytes never change. Read-only
+            files and directories open this way.
 
         Raises
         ------
         MapFileNotFound
             If the file does not exist.
         OctolgpError
-            If it is not an octolgp map file or is corrupt.
+            If it is not an octolgp map file or is corrupt, or, to write, when it is
+            read-only here or another writer has it open.
         """
         from octolgp.persist.mapfile import MapFile
 
-        f = MapFile.open(path)
-        return cls(f.header.config, storage=f)
+        f = MapFile.open(path, read_only=read_only)
+        try:
+            return cls(f.header.config, storage=f)
+        except BaseException:
+            f.close()
+            raise
 
-    def save(self, path: str | Path) -> None:
-        """Write the map to a new SQLite map file, replacing ``path`` atomically.
+    def save(self, path: str | Path, *, overwrite: bool = False) -> None:
+        """Write the map to a new SQLite map file (a temporary file, then a rename).
 
         The file holds the map as it is: a map still buffering scans is saved with
         its buffered scans and no hyperparameters, and reopens buffering.
+
+        Parameters
+        ----------
+        path : str or Path
+            A new file; never the map's own file.
+        overwrite : bool, optional
+            Replace an existing file at ``path`` (not one open for writing).
+
+        Raises
+        ------
+        OctolgpError
+            If ``path`` exists (without ``overwrite``), is the map's own file or
+            cannot be written; a file already there is then unchanged.
         """
         from octolgp.persist.mapfile import write_map
 
-        journal = self._file.scans() if self._file is not None else iter(self._bootstrap.scans)
-        write_map(
-            path, self.config, self.hyperparameters, self.n_scans, self.store.items(), journal
-        )
+        with self._reading():
+            f = self._file
+            journal = f.scans() if f is not None else iter(self._bootstrap.scans)
+            own = None if f is None else f.path
+            leaves = self.store.items()
+            hp, n = self.hyperparameters, self.n_scans
+            write_map(path, self.config, hp, n, leaves, journal, overwrite=overwrite, own=own)
 
     def close(self) -> None:
-        """Release worker threads and the map file."""
-        self._workers.close()
-        if self._file is not None:
-            self._file.close()
-            self._file = None
-        self._bootstrap = Bootstrap(self.config, self._bootstrap.scans)
+        """Release worker threads and the map file; every later call is refused.
+
+        Closing twice is harmless.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._workers.close()
+            if self._file is not None:
+                self._file.close()
+                self._file = None
+
+    def _check(self, call: str, *, write: bool = False) -> None:
+        """Refuse ``call`` on a closed or broken map (and a write on a read-only one)."""
+        if self._closed:
+            raise OctolgpError(f"{call}: the map is closed")
+        if self._broken is not None:
+            raise OctolgpError(f"{call}: {self._broken}")
+        if write and self.read_only:
+            raise OctolgpError(
+                f"{call}: map file {str(self.path)!r} was opened read-only (OnlineMap.open "
+                "with read_only=True)"
+            )
+
+    @contextmanager
+    def _reading(self) -> Iterator[OnlineMap]:
+        """The map one read comes from, held alone (the map's lock) for that read.
+
+        This map, or a provisional fit of the buffered scans while it learns its
+        hyperparameters. Every read of :class:`~octolgp.mapping.query.MapReads` goes
+        through it; a closed or broken map refuses.
+        """
+        with self._lock:
+            self._check("read")
+            yield self if not self.provisional else self._bootstrap.provisional(_provisional_map)
+
+    @contextmanager
+    def _all_or_nothing(self, call: str) -> Iterator[None]:
+        """Several writes as one: one file transaction, or a map that refuses further use.
+
+        The store cannot be rolled back, so when the transaction fails after a write
+        reached the store the map is broken: every later call is refused, and the
+        file (rolled back) holds the map before ``call``.
+        """
+        writes = self._writes
+        try:
+            with self._file.transaction() if self._file is not None else nullcontext():
+                yield
+        except BaseException as exc:  # a failed commit too, after the writes
+            if self._writes != writes:
+                self._break(call, exc)
+            raise
+
+    def _break(self, call: str, exc: BaseException) -> None:
+        """Refuse every later call: the store holds part of a step its file does not."""
+        where = (
+            f"reopen {str(self._file.path)!r} with OnlineMap.open: it holds the map before "
+            "that call"
+            if self._file is not None and not self._file.temporary
+            else "the map is incomplete"
+        )
+        self._broken = f"an earlier {call} failed part-way ({exc}); {where}"
 
     def __enter__(self) -> OnlineMap:
         return self
@@ -228,6 +352,7 @@ class OnlineMap(MapReads):
 
         A map without a file keeps only the scans it is still buffering.
         """
+        self._check("scans")
         if self._file is not None:
             return self._file.scans()
         return iter(list(self._bootstrap.scans))
@@ -247,6 +372,7 @@ class OnlineMap(MapReads):
         return len(self._bootstrap)
 
     # ------------------------------------------------------------------ updates
+    @_step_of_state
     def insert_scan(self, scan: Scan) -> ScanUpdate:
         """Add one scan: refit and re-predict only the leaves it brings new evidence to.
 
@@ -263,12 +389,13 @@ class OnlineMap(MapReads):
         ------
         OctolgpError
             On a value that is not a :class:`Scan`, a wrong dimension or a point
-            outside the addressable range. The map is then exactly as before.
+            outside the addressable range, and when the map file's commit fails (a
+            full disk, an I/O error). The map and its file are then exactly as
+            before; so are they after any exception raised before the write.
         """
         t0 = time.perf_counter()
         scan = check_scan(scan, self.config, self.grid)
         index = self.n_scans + 1
-        self.sink.on_scan(scan, index)
         if self.hyperparameters is not None:
             return self._step([scan], [(index, scan)], t0)
         if self._bootstrap.add(scan):  # enough scans to learn on
@@ -276,13 +403,20 @@ class OnlineMap(MapReads):
             if update is not None:
                 return update
         else:
-            self._write([], journal=[(index, scan)], n_scans=index)
+            self._journal([(index, scan)])
         return self._buffered_update(t0)
+
+    def _journal(self, journal: list[tuple[int, Scan]]) -> None:
+        """Journal scans that change no leaf (buffered to learn on), then show them."""
+        self._write([], journal=journal, n_scans=journal[-1][0])
+        for i, s in journal:  # one iteration per journaled scan
+            self.sink.on_scan(s, i)
 
     def insert_scans(self, scans: Iterable[Scan]) -> list[ScanUpdate]:
         """Insert scans one by one; return their updates."""
         return [self.insert_scan(s) for s in scans]
 
+    @_step_of_state
     def flush(self) -> ScanUpdate | None:
         """Learn hyperparameters from the buffered scans now and insert them.
 
@@ -299,7 +433,7 @@ class OnlineMap(MapReads):
         if not self._bootstrap.can_learn():
             # nothing to learn from yet (no return, or every beam on its sensor): keep buffering
             if journal:
-                self._write([], journal=journal, n_scans=journal[-1][0])
+                self._journal(journal)
             return None
         t1 = time.perf_counter()
         hp = self._bootstrap.learn()
@@ -330,12 +464,15 @@ class OnlineMap(MapReads):
             n_scans=index,
         )
         stages["store"] = time.perf_counter() - t
+        for i, s in journal:  # shown once in the map
+            self.sink.on_scan(s, i)
         update = self._update(
             index, t0, stages, len(evidence.touched), fits, new_items=evidence.new_items
         )
         self.sink.on_update(update, self._change(fitted))
         return update
 
+    @_step_of_state
     def correct_scans(self, corrections: Mapping[int, ArrayLike]) -> ScanUpdate:
         """Move journaled scans by rigid transforms, as a pose graph's loop closure does.
 
@@ -430,6 +567,7 @@ class OnlineMap(MapReads):
                 ) from None
         return old, new
 
+    @_step_of_state
     def insert_batch(
         self,
         scans: Iterable[Scan],
@@ -467,15 +605,16 @@ class OnlineMap(MapReads):
         Raises
         ------
         OctolgpError
-            On a bad scan (checked before anything changes) or no scans at all.
+            On a bad scan (checked before anything changes) or no scans at all. With
+            a map file the batch is one transaction: a kill or a failed commit leaves
+            the file as before the call (and the map, then out of step with it,
+            refuses further calls).
         """
         t0 = time.perf_counter()
         new_scans = [check_scan(s, self.config, self.grid) for s in scans]
         if not new_scans:
             raise OctolgpError("scans: no scans to build from")
         journal = list(enumerate(new_scans, start=self.n_scans + 1))
-        for i, s in journal:
-            self.sink.on_scan(s, i)
         index = journal[-1][0]
         stats: dict[str, float] = {"learning": 0.0}
         scan_list = new_scans
@@ -487,21 +626,24 @@ class OnlineMap(MapReads):
             gathered, refit, new_items = gather_batch(
                 scan_list, self.engine, self.store.get, CHUNK_BEAMS, stats
             )
-        kept = [(k, leaf) for k, leaf in gathered.items() if k not in refit]
-        if kept:  # new counts, same GP inputs: stored as they are
-            self._write(kept, stamp=index)
         keys = [k for k in gathered if k in refit]
-        leaves = [gathered[k] for k in keys]
-        del gathered, kept
-        # 2. fit in batches, each written (durable, then evictable) before the next
-        t = time.perf_counter()
-        run = self._local_fitter if fitter is None else fitter
-        pruned, repaired = self._write_batches(run(keys, leaves), index, len(keys), progress)
-        stats["fit"] = time.perf_counter() - t
-        # 3. the journal and the scan count, last
-        t = time.perf_counter()
-        self._write([], journal=journal, n_scans=index)
+        with self._all_or_nothing("insert_batch"):
+            kept = [(k, leaf) for k, leaf in gathered.items() if k not in refit]
+            if kept:  # new counts, same GP inputs: stored as they are
+                self._write(kept, stamp=index)
+            leaves = [gathered[k] for k in keys]
+            del gathered, kept
+            # 2. fit in batches, each written (then evictable) before the next
+            t = time.perf_counter()
+            run = self._local_fitter if fitter is None else fitter
+            pruned, repaired = self._write_batches(run(keys, leaves), index, len(keys), progress)
+            stats["fit"] = time.perf_counter() - t
+            # 3. the journal and the scan count, last; the commit makes it all durable
+            t = time.perf_counter()
+            self._write([], journal=journal, n_scans=index)
         stats["store"] = time.perf_counter() - t
+        for i, s in journal:  # shown once in the map
+            self.sink.on_scan(s, i)
         self.build_stats = {
             **stats,
             "leaves": float(len(keys)),
@@ -559,30 +701,34 @@ class OnlineMap(MapReads):
         for lo, hi in batch_bounds([leaf.n_items for leaf in leaves], FIT_BATCH_ITEMS):
             yield keys[lo:hi], self._fit(leaves[lo:hi], reuse=False)
 
+    @_step_of_state
     def relearn(self, scans: Iterable[Scan]) -> Hyperparameters:
         """Learn new hyperparameters on ``scans`` and refit every leaf with them."""
         hp = learn_hyperparameters(scans, self.config)
         self.set_hyperparameters(hp)
         return hp
 
+    @_step_of_state
     def set_hyperparameters(self, hp: Hyperparameters) -> None:
         """Use ``hp`` from now on and refit every leaf from its stored evidence.
 
         Buffered scans are inserted with ``hp``. Leaves are refitted in batches of
         256 so a map with a memory budget never holds more than that many beyond its
-        budget.
+        budget; with a map file it is one transaction (a kill leaves the file before
+        or after).
         """
         if not isinstance(hp, Hyperparameters):
             raise OctolgpError(f"hp must be Hyperparameters, got {type(hp).__name__}")
         self.hyperparameters = hp
-        if len(self._bootstrap):
-            self._step(self._bootstrap.take(), [], time.perf_counter())
-        keys = list(self.store)
-        for lo in range(0, len(keys), 256):  # one batch of leaves per iteration
-            batch = [(k, leaf) for k in keys[lo : lo + 256] if (leaf := self.store.peek(k))]
-            fits = self._fit([leaf for _, leaf in batch])
-            self._count_repairs(fits)
-            self._write([(k, f.leaf) for (k, _), f in zip(batch, fits, strict=True)])
+        with self._all_or_nothing("set_hyperparameters"):
+            if len(self._bootstrap):
+                self._step(self._bootstrap.take(), [], time.perf_counter())
+            keys = list(self.store)
+            for lo in range(0, len(keys), 256):  # one batch of leaves per iteration
+                batch = [(k, leaf) for k in keys[lo : lo + 256] if (leaf := self.store.peek(k))]
+                fits = self._fit([leaf for _, leaf in batch])
+                self._count_repairs(fits)
+                self._write([(k, f.leaf) for (k, _), f in zip(batch, fits, strict=True)])
 
     # ------------------------------------------------------------------ the one write path
     def _write(
@@ -596,7 +742,9 @@ class OnlineMap(MapReads):
         removed: list[int] | None = None,
         corrected: list[tuple[int, Scan]] | None = None,
     ) -> None:
-        """Write one step's result: the store, then the map file in one transaction.
+        """Write one step's result: the map file in one transaction, then the store.
+
+        The file first: when its commit fails nothing has changed, in RAM or on disk.
 
         Parameters
         ----------
@@ -617,18 +765,29 @@ class OnlineMap(MapReads):
             Journal rows rewritten (a correction).
         """
         journal, removed, corrected = journal or [], removed or [], corrected or []
-        self.store.apply(leaves, touched, stamp)
-        self.store.remove(removed)
-        if n_scans is not None:
-            self.n_scans = n_scans
-        self._extents.journaled([s for _, s in journal])
+        written: list[int] = []
         if self._file is not None:
+            if stamp is not None:  # the stamp the store gives them, written with them
+                for _, leaf in leaves:  # one iteration per new leaf
+                    leaf.touched = stamp
             if corrected or removed:
                 written = self._file.correct(leaves, removed, corrected)
             else:
-                written = self._file.commit(leaves, journal, self.hyperparameters, self.n_scans)
+                count = self.n_scans if n_scans is None else n_scans
+                written = self._file.commit(leaves, journal, self.hyperparameters, count)
+        try:
+            self.store.apply(leaves, touched, stamp)
+            self.store.remove(removed)
+            if n_scans is not None:
+                self.n_scans = n_scans
+            self._extents.journaled([s for _, s in journal])
             self.store.persisted(written)
-        self.store.trim()
+            self._writes += 1
+            self.store.trim()
+        except BaseException as exc:  # the file holds the step, the store part of it
+            self._writes += 1
+            self._break("write", exc)
+            raise
 
     def _fit(
         self, leaves: list[Leaf], stages: dict[str, float] | None = None, *, reuse: bool = True
@@ -716,15 +875,6 @@ class OnlineMap(MapReads):
         )
 
     # ------------------------------------------------------------------ reads
-    def _readable(self) -> OnlineMap:
-        """The map reads come from: this one, or a provisional fit while buffering.
-
-        Every read of :class:`~octolgp.mapping.query.MapReads` goes through it.
-        """
-        if not self.provisional:
-            return self
-        return self._bootstrap.provisional(_provisional_map)
-
     def memory_bytes(self) -> int:
         """Bytes held by the leaves (evidence and voxel values)."""
         return self.store.nbytes

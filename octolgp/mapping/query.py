@@ -11,6 +11,7 @@ resident, so a query does not change which leaves stay in RAM either.
 from __future__ import annotations
 
 from collections.abc import Iterator
+from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Protocol
 
@@ -133,15 +134,16 @@ def interpolate_latent(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, Float
 class MapReads:
     """The reads of an online map; none of them changes the map.
 
-    A subclass provides ``config`` and :meth:`_readable`, the map the reads come from
-    (itself, or a provisional fit while it buffers scans to learn hyperparameters).
+    A subclass provides ``config`` and :meth:`_reading`, a context holding the map the
+    reads come from (itself, or a provisional fit while it buffers scans to learn
+    hyperparameters) for the length of one read.
     """
 
     config: MapConfig
     grid: LeafGrid
     store: LeafStore
 
-    def _readable(self) -> ReadableMap:
+    def _reading(self) -> AbstractContextManager[ReadableMap]:
         raise NotImplementedError
 
     def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
@@ -172,12 +174,12 @@ class MapReads:
             On a bad shape, a non-finite value or a point outside the addressable range.
         """
         X = query_points(points, self.config)
-        m = self._readable()
-        hp = m.hyperparameters
-        if not interpolate or hp is None:
-            (prob,) = lookup(m.store, m.grid, X, ("prob",))
-            return np.where(np.isnan(prob), 0.5, prob)
-        mean, var, known = interpolate_latent(m, X)
+        with self._reading() as m:
+            hp = m.hyperparameters
+            if not interpolate or hp is None:
+                (prob,) = lookup(m.store, m.grid, X, ("prob",))
+                return np.where(np.isnan(prob), 0.5, prob)
+            mean, var, known = interpolate_latent(m, X)
         prob = latent_occupancy(mean, var, hp)
         return np.where(known, prob, 0.5)
 
@@ -194,12 +196,12 @@ class MapReads:
             (``σf² = 1`` before hyperparameters exist).
         """
         X = query_points(points, self.config)
-        m = self._readable()
-        prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
-        if not interpolate:
-            mean, var = lookup(m.store, m.grid, X, ("mean", "var"))
-            return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
-        mean, var, known = interpolate_latent(m, X)
+        with self._reading() as m:
+            prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
+            if not interpolate:
+                mean, var = lookup(m.store, m.grid, X, ("mean", "var"))
+                return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
+            mean, var, known = interpolate_latent(m, X)
         return np.where(known, mean, 0.0), np.where(known, var, prior)
 
     def voxel_centres(self, leaf: Leaf) -> FloatArray:
@@ -207,8 +209,13 @@ class MapReads:
         return self.grid.voxel_centres(leaf.index)
 
     def leaves(self) -> Iterator[tuple[int, Leaf]]:
-        """``(packed leaf key, leaf)`` for every leaf, in key order."""
-        return self.store.items()
+        """``(packed leaf key, leaf)`` for every leaf, in key order.
+
+        The map is checked when the iterator is made; a writer changing the map while
+        it is consumed may be seen part-way.
+        """
+        with self._reading():
+            return self.store.items()
 
     def voxels(self) -> tuple[FloatArray, FloatArray]:
         """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
@@ -220,13 +227,13 @@ class MapReads:
         centres : ndarray of shape (k, d)
         prob : ndarray of shape (k,)
         """
-        m = self._readable()
         cs, ps = [], []
-        for _, leaf in m.store.items():  # one iteration per leaf
-            if leaf.prob.size == 0:
-                continue
-            cs.append(m.grid.voxel_centres(leaf.index))
-            ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
+        with self._reading() as m:
+            for _, leaf in m.store.items():  # one iteration per leaf
+                if leaf.prob.size == 0:
+                    continue
+                cs.append(m.grid.voxel_centres(leaf.index))
+                ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
         if not cs:
             return np.zeros((0, self.config.dim)), np.zeros(0)
         return np.concatenate(cs), np.concatenate(ps)

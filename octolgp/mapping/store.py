@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Iterable, Iterator
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Protocol
@@ -141,6 +142,12 @@ class MapStorage(LeafBacking, Protocol):
 
     path: Path
     header: MapHeader
+    read_only: bool
+    temporary: bool
+
+    def transaction(self) -> AbstractContextManager[object]:
+        """One write transaction that the writes inside it join (all or nothing)."""
+        ...
 
     def scans(self, start: int = 0) -> Iterator[Scan]:
         """The journaled scans with index > ``start``, in order."""

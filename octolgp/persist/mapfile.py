@@ -9,20 +9,30 @@ Tables
     ``null``), ``n_scans``.
 ``leaves(key INTEGER PRIMARY KEY, data BLOB)``
     One row per leaf, keyed by its packed OctoMap key; ``data`` is the leaf in the
-    encoding of :func:`encode_leaf` (a fixed header, the voxel values in float32, then
-    the engine's evidence record, :meth:`octolgp.engines.base.LeafEngine.encode`).
-``scans(idx INTEGER PRIMARY KEY, dim, origin BLOB, points BLOB, max_range, stamp)``
-    The journal of inserted scans, float64, in insertion order (empty in a file
-    saved from an in-memory map, which keeps no scans).
+    encoding of :func:`encode_leaf` (a fixed header, the voxel values in float32, the
+    engine's evidence record, :meth:`octolgp.engines.base.LeafEngine.encode`, and a
+    CRC-32 of all of it).
+``scans(idx INTEGER PRIMARY KEY, dim, origin BLOB, points BLOB, max_range, stamp, crc)``
+    The journal of inserted scans, float64, in insertion order, each with a CRC-32
+    (empty in a file saved from an in-memory map, which keeps no scans).
 
-Durability
+Guarantees
 ----------
-Every ``OnlineMap.insert_scan`` of a map with a file ends in one SQLite
-transaction (WAL journal, ``synchronous=FULL``) that writes the scan's journal row,
-every leaf it changed and the scan count, so after ``kill -9`` at any moment the
-file holds exactly the scans whose ``insert_scan`` returned, and a scan in flight
-is wholly in or wholly out. Opening never modifies a file that is not an
-octolgp map.
+- **Durable steps.** Every write of an online map (a scan, a batch, a correction, new
+  hyperparameters) is one SQLite transaction (WAL journal, ``synchronous=FULL``), so
+  after ``kill -9``, a full disk or an I/O error at any moment the file holds exactly
+  the steps that returned, and a step in flight is wholly in or wholly out. A failed
+  commit raises :class:`OctolgpError` naming the file.
+- **One writer.** A writer holds an exclusive lock on the file while it is open
+  (:class:`octolgp.persist.lock.WriterLock`); a second writer is refused.
+- **Snapshots.** A reader (``read_only=True``) reads inside one read transaction: it
+  sees the map as of one committed step, whatever a writer does meanwhile.
+- **Checksums.** A leaf record or a journaled scan whose CRC-32 does not match is an
+  :class:`OctolgpError` naming it, never a number.
+- **Reads never write.** Opening, reading and closing without a write leave every
+  byte of the file as it was (the WAL journal mode is set at the first write and a
+  writer's :meth:`MapFile.close` returns the file to a rollback journal); read-only
+  files and directories can be read.
 
 This module reads and writes map state (config, hyperparameters, scan count, leaves,
 journal); it never constructs or inspects a map object. The map holds a
@@ -33,10 +43,13 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import sqlite3
 import struct
 import tempfile
+import zlib
 from collections.abc import Iterable, Iterator
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
@@ -51,26 +64,31 @@ from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.geometry.keys import pack_keys
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf, LeafEvidence, MapHeader
+from octolgp.persist.lock import WriterLock, held_by_a_writer
 from octolgp.scan import Scan
 
 FORMAT = "octolgp-map"
-VERSION = 3
-READABLE_VERSIONS = ("2", "3")
-"""File versions this code opens (2: before the engines owned their leaf records)."""
+VERSION = 4
+READABLE_VERSIONS = ("2", "3", "4")
+"""File versions this code opens (2: before the engines owned their leaf records;
+3: before checksums)."""
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _HEADER = struct.Struct("<4sBBxxqqqq")  # magic, version, dim, values, pruned, refits, touched
 _OLD_HEADER = struct.Struct("<4sBBxxqqqqqq")  # records 1 and 2: h, s, v, pruned, refits, touched
+_CRC = struct.Struct("<I")
 _LEAF_MAGIC = b"OLGL"
-_RECORD = 3
+_RECORD = 4
 _COUNTS = struct.Struct("<q")  # record 2: halo voxels of the count arrays
+_SCAN_COLUMNS = "idx, dim, origin, points, max_range, stamp"
 
 
 def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
-    """A leaf as bytes: a header, its index and voxel values, then its engine's evidence.
+    """A leaf as bytes: a header, its index and voxel values, its engine's evidence, a CRC.
 
     Little-endian: the 40-byte header (magic, record version, dimension, number of
     voxel values, pruned, refits, touched), the index (int64), mean, variance and
-    P(occupied) (float32), then :meth:`LeafEngine.encode` of the evidence.
+    P(occupied) (float32), :meth:`LeafEngine.encode` of the evidence, then the CRC-32
+    of everything before it (uint32).
     """
     d, v = int(leaf.index.size), leaf.prob.size
     head = _HEADER.pack(_LEAF_MAGIC, _RECORD, d, v, int(leaf.pruned), leaf.refits, leaf.touched)
@@ -80,21 +98,30 @@ def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
         leaf.var.astype("<f4"),
         leaf.prob.astype("<f4"),
     )
-    return head + b"".join(p.tobytes() for p in parts) + engine.encode(leaf.evidence)
+    body = head + b"".join(p.tobytes() for p in parts) + engine.encode(leaf.evidence)
+    return body + _CRC.pack(zlib.crc32(body))
 
 
 def decode_leaf(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
-    """Inverse of :func:`encode_leaf` (records 1 and 2 too); ``OctolgpError`` if corrupt."""
+    """Inverse of :func:`encode_leaf` (records 1 to 3 too); ``OctolgpError`` if corrupt."""
     if len(blob) < 5:
         raise OctolgpError("leaf record is truncated")
     if blob[:4] != _LEAF_MAGIC:
         raise OctolgpError("leaf record has a bad header")
     if blob[4] in (1, 2):
         return _decode_old(blob, engine, grid)
+    if blob[4] == _RECORD:
+        if len(blob) < _HEADER.size + _CRC.size:
+            raise OctolgpError("leaf record is truncated")
+        blob, (crc,) = blob[: -_CRC.size], _CRC.unpack_from(blob, len(blob) - _CRC.size)
+        if zlib.crc32(blob) != crc:
+            raise OctolgpError("leaf record fails its checksum")
+    elif blob[4] != 3:  # record 3: the same layout without the checksum
+        raise OctolgpError("leaf record has a bad header")
     if len(blob) < _HEADER.size:
         raise OctolgpError("leaf record is truncated")
-    _, version, d, v, pruned, refits, touched = _HEADER.unpack_from(blob)
-    if version != _RECORD or d not in (2, 3) or v < 0:
+    _, _, d, v, pruned, refits, touched = _HEADER.unpack_from(blob)
+    if d not in (2, 3) or v < 0:
         raise OctolgpError("leaf record has a bad header")
     at = _HEADER.size + 8 * d + 12 * v
     if len(blob) < at:
@@ -145,15 +172,22 @@ def _decode_old(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
     return Leaf(index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched))
 
 
-def stored_config(stored: dict[str, Any], clear_scans: str | None) -> MapConfig:
+def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     """The resolved config of a map file from its ``config`` JSON.
 
-    Files of version 3 store the resolved config whole. Older ones dropped derived
-    fields: their engine is ``"exact"`` when absent (files from before the lattice
-    engine) and their ``clear_scans`` the ``clear_scans`` meta row (0 where absent,
-    files from before forgetting); the other derived fields take the defaults they had
-    when those files were written, which are today's.
+    Files of version 3 and later store the resolved config whole. Older ones dropped
+    derived fields: their engine is ``"exact"`` when absent (files from before the
+    lattice engine) and their ``clear_scans`` the ``clear_scans`` meta row (0 where
+    absent, files from before forgetting); the other derived fields take the defaults
+    they had when those files were written, which are today's.
+
+    Raises
+    ------
+    OctolgpError
+        If ``stored`` is not a config object.
     """
+    if not isinstance(stored, dict) or not isinstance(stored.get("online", {}), dict):
+        raise OctolgpError(f"config is not a JSON object of MapConfig fields: {stored!r:.60}")
     online = stored.setdefault("online", {})
     online.setdefault("engine", "exact")
     if "clear_scans" not in online:
@@ -163,19 +197,24 @@ def stored_config(stored: dict[str, Any], clear_scans: str | None) -> MapConfig:
     return MapConfig.from_dict(stored).resolve()
 
 
-def _scan_row(index: int, scan: Scan) -> tuple[Any, ...]:
-    return (
-        index,
-        scan.dim,
-        scan.origin.astype("<f8").tobytes(),
-        scan.points.astype("<f8").tobytes(),
-        scan.max_range,
-        scan.stamp,
+def _scan_crc(dim: int, origin: bytes, points: bytes, max_range: object, stamp: object) -> int:
+    """CRC-32 of a journal row's values (floats by their exact ``repr``)."""
+    return zlib.crc32(
+        points, zlib.crc32(origin, zlib.crc32(f"{dim}|{max_range!r}|{stamp!r}".encode()))
     )
 
 
+def _scan_row(index: int, scan: Scan) -> tuple[Any, ...]:
+    origin = scan.origin.astype("<f8").tobytes()
+    points = scan.points.astype("<f8").tobytes()
+    crc = _scan_crc(scan.dim, origin, points, scan.max_range, scan.stamp)
+    return (index, scan.dim, origin, points, scan.max_range, scan.stamp, crc)
+
+
 def _row_scan(row: tuple[Any, ...]) -> Scan:
-    _, dim, origin, points, max_range, stamp = row
+    index, dim, origin, points, max_range, stamp, crc = row
+    if crc is not None and _scan_crc(dim, origin, points, max_range, stamp) != crc:
+        raise OctolgpError(f"journaled scan {index} fails its checksum")
     o = np.frombuffer(origin, dtype="<f8").astype(np.float64)
     p = np.frombuffer(points, dtype="<f8").astype(np.float64).reshape(-1, int(dim))
     return Scan(origin=o, points=p, max_range=max_range, stamp=stamp)
@@ -187,30 +226,36 @@ def _hp_json(hp: Hyperparameters | None) -> str:
     return json.dumps({f: getattr(hp, f) for f in hp.__dataclass_fields__})
 
 
-def _durable(con: sqlite3.Connection) -> None:
-    con.execute("PRAGMA journal_mode=WAL")
-    con.execute("PRAGMA synchronous=FULL")
+def _hp_of(text: str) -> Hyperparameters | None:
+    data = json.loads(text)
+    if data is None:
+        return None
+    if not isinstance(data, dict):
+        raise OctolgpError(f"hyperparameters are not a JSON object: {text:.60}")
+    return Hyperparameters(**data)
 
 
-class _Transaction:
-    """``BEGIN IMMEDIATE`` … ``COMMIT``, rolled back on an exception."""
+def _connect(p: Path, read_only: bool) -> sqlite3.Connection:
+    """A connection in autocommit mode; a reader's never writes (``mode=ro``).
 
-    def __init__(self, con: sqlite3.Connection) -> None:
-        self._con = con
-
-    def __enter__(self) -> sqlite3.Connection:
-        self._con.execute("BEGIN IMMEDIATE")
-        return self._con
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        self._con.execute("ROLLBACK" if exc_type is not None else "COMMIT")
+    A file nobody can write (a read-only file or directory, where SQLite cannot make
+    its shared-memory file) is opened ``immutable``: no writer can be changing it.
+    """
+    if not read_only:
+        con = sqlite3.connect(str(p), isolation_level=None, check_same_thread=False)
+        con.execute("PRAGMA synchronous=FULL")
+        return con
+    uri = p.resolve().as_uri()
+    writable = os.access(p, os.W_OK) and os.access(p.parent, os.W_OK)
+    mode = "?mode=ro" if writable else "?immutable=1"
+    return sqlite3.connect(uri + mode, uri=True, isolation_level=None, check_same_thread=False)
 
 
 class MapFile:
     """Write-through persistence of an online map in one SQLite file.
 
     It is also the store's :class:`~octolgp.mapping.store.LeafBacking`: evicted leaves
-    are read back from it.
+    are read back from it. Open it with :meth:`create`, :meth:`open` or :meth:`spill`.
 
     Attributes
     ----------
@@ -219,17 +264,30 @@ class MapFile:
         The state recorded when the file was created or opened.
     temporary : bool
         A spill file, deleted on :meth:`close`.
+    read_only : bool
+        Opened to read a snapshot; every write is refused.
     """
 
     def __init__(
-        self, path: Path, con: sqlite3.Connection, header: MapHeader, temporary: bool = False
+        self,
+        path: Path,
+        con: sqlite3.Connection,
+        header: MapHeader,
+        *,
+        lock: WriterLock | None = None,
+        temporary: bool = False,
     ) -> None:
         self.path = path
         self._con = con
+        self._lock = lock
         self.header = header
         self.temporary = temporary
+        self.read_only = lock is None
         self._engine = engine_for(header.config)
         self._grid = LeafGrid.from_config(header.config)
+        self._depth = 0  # open write transactions (nested ones join the outer)
+        self._wrote = False
+        self._crc_column = "crc" in {r[1] for r in con.execute("PRAGMA table_info(scans)")}
 
     # ------------------------------------------------------------------ create / open
     @classmethod
@@ -242,7 +300,7 @@ class MapFile:
         leaves: Iterable[tuple[int, Leaf]] = (),
         temporary: bool = False,
     ) -> MapFile:
-        """Start a new map file; refuses to overwrite an existing file.
+        """Start a new map file, locked for writing; refuses to overwrite an existing file.
 
         Raises
         ------
@@ -252,94 +310,105 @@ class MapFile:
         p = Path(path)
         config = config.resolve()
         engine = engine_for(config)
-        if p.exists() and not temporary:
-            raise OctolgpError(
-                f"path {str(p)!r} already exists; reopen it with OnlineMap.open or remove it"
-            )
+        lock = WriterLock(p, create=True)
         keys: list[int] = []
         try:
-            con = sqlite3.connect(str(p), isolation_level=None, check_same_thread=False)
-            _durable(con)
-            with _Transaction(con):
-                con.execute("CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL)")
-                con.execute("CREATE TABLE leaves(key INTEGER PRIMARY KEY, data BLOB NOT NULL)")
-                con.execute(
-                    "CREATE TABLE scans(idx INTEGER PRIMARY KEY, dim INTEGER NOT NULL, "
-                    "origin BLOB NOT NULL, points BLOB NOT NULL, max_range REAL, stamp REAL)"
-                )
-                rows = [
-                    ("format", FORMAT),
-                    ("version", str(VERSION)),
-                    ("config", json.dumps(config.to_dict())),
-                    ("hyperparameters", _hp_json(hyperparameters)),
-                    ("n_scans", str(n_scans)),
-                ]
-                con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
-                for k, leaf in leaves:  # one row per leaf
-                    con.execute("INSERT INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine)))
-                    keys.append(k)
+            con = _connect(p, read_only=False)
+            con.execute("PRAGMA journal_mode=WAL")
+            con.execute("BEGIN IMMEDIATE")
+            con.execute("CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+            con.execute("CREATE TABLE leaves(key INTEGER PRIMARY KEY, data BLOB NOT NULL)")
+            con.execute(
+                "CREATE TABLE scans(idx INTEGER PRIMARY KEY, dim INTEGER NOT NULL, "
+                "origin BLOB NOT NULL, points BLOB NOT NULL, max_range REAL, stamp REAL, "
+                "crc INTEGER)"
+            )
+            rows = [
+                ("format", FORMAT),
+                ("version", str(VERSION)),
+                ("config", json.dumps(config.to_dict())),
+                ("hyperparameters", _hp_json(hyperparameters)),
+                ("n_scans", str(n_scans)),
+            ]
+            con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
+            for k, leaf in leaves:  # one row per leaf
+                con.execute("INSERT INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine)))
+                keys.append(k)
+            con.execute("COMMIT")
         except sqlite3.Error as exc:
+            lock.release()
+            _remove(p)
             raise OctolgpError(f"path {str(p)!r}: cannot create the map file ({exc})") from None
-        return cls(p, con, MapHeader(config, hyperparameters, n_scans, keys), temporary)
+        header = MapHeader(config, hyperparameters, n_scans, keys)
+        f = cls(p, con, header, lock=lock, temporary=temporary)
+        f._wrote = True
+        return f
 
     @classmethod
     def spill(cls, config: MapConfig) -> MapFile:
         """A spill file for an in-memory map with a memory budget (deleted on close)."""
-        fd, name = tempfile.mkstemp(prefix="octolgp-", suffix=".octolgp")
-        os.close(fd)
-        os.unlink(name)
+        name = Path(tempfile.gettempdir()) / f"octolgp-{secrets.token_hex(8)}.octolgp"
         return cls.create(name, config, temporary=True)
 
     @classmethod
-    def open(cls, path: str | Path) -> MapFile:
+    def open(cls, path: str | Path, *, read_only: bool = False) -> MapFile:
         """Open a map file (leaves are read lazily); its state is in :attr:`header`.
+
+        Parameters
+        ----------
+        path : str or Path
+        read_only : bool
+            ``False``: the one writer (an exclusive lock until :meth:`close`).
+            ``True``: a reader of the last committed step, a snapshot held until
+            :meth:`close`; no lock, and the file is never written.
 
         Raises
         ------
         MapFileNotFound
             If the file does not exist.
         OctolgpError
-            If it is not an octolgp map file or is corrupt.
+            If it is not an octolgp map file, is corrupt, or (a writer) is read-only
+            here or open for writing elsewhere.
         """
         p = Path(path)
         if not p.is_file():
             raise MapFileNotFound(f"map file {str(p)!r} does not exist")
-        with p.open("rb") as fh:
-            if fh.read(16) != _SQLITE_MAGIC:
-                raise OctolgpError(f"map file {str(p)!r} is not an octolgp map (not SQLite)")
         try:
-            con = sqlite3.connect(str(p), isolation_level=None, check_same_thread=False)
+            with p.open("rb") as fh:
+                magic = fh.read(16)
+        except OSError as exc:
+            raise OctolgpError(f"map file {str(p)!r} cannot be read: {exc}") from None
+        if magic != _SQLITE_MAGIC:
+            raise OctolgpError(f"map file {str(p)!r} is not an octolgp map (not SQLite)")
+        lock = None if read_only else WriterLock(p)
+        try:
+            con = _connect(p, read_only)
             try:
-                meta = dict(con.execute("SELECT key, value FROM meta").fetchall())
-            except sqlite3.Error:
-                raise OctolgpError(f"map file {str(p)!r} is not an octolgp map") from None
-            if meta.get("format") != FORMAT:
-                raise OctolgpError(f"map file {str(p)!r} is not an octolgp map")
-            if meta.get("version") not in READABLE_VERSIONS:
+                if read_only:
+                    con.execute("BEGIN")  # the snapshot, held until close()
+                header = _read_header(p, con)
+                return cls(p, con, header, lock=lock)
+            except BaseException:
+                con.close()
+                raise
+        except BaseException as exc:
+            if lock is not None:
+                lock.release()
+            if isinstance(exc, sqlite3.Error):
                 raise OctolgpError(
-                    f"map file {str(p)!r} has version {meta.get('version')}, expected "
-                    f"{' or '.join(READABLE_VERSIONS)}"
-                )
-            config = stored_config(json.loads(meta["config"]), meta.get("clear_scans"))
-            hp_data = json.loads(meta["hyperparameters"])
-            hp = None if hp_data is None else Hyperparameters(**hp_data)
-            n_scans = int(meta["n_scans"])
-            keys = [int(k) for (k,) in con.execute("SELECT key FROM leaves")]
-            journal = int(con.execute("SELECT COUNT(*) FROM scans").fetchone()[0])
-            if journal not in (0, n_scans):  # 0: saved from memory, without a journal
-                raise OctolgpError(
-                    f"map file {str(p)!r} is corrupt: {journal} journaled scans, n_scans {n_scans}"
-                )
-            _durable(con)
-        except OctolgpError:
+                    f"map file {str(p)!r} is not an octolgp map or cannot be read ({exc})"
+                ) from None
             raise
-        except (sqlite3.Error, KeyError, ValueError, TypeError, OSError) as exc:
-            raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
-        return cls(p, con, MapHeader(config, hp, n_scans, keys))
 
     # ------------------------------------------------------------------ reads
     def read_leaf(self, key: int) -> Leaf:
-        """The persisted leaf ``key``."""
+        """The persisted leaf ``key``.
+
+        Raises
+        ------
+        OctolgpError
+            If the record is missing, fails its checksum or is another leaf's.
+        """
         try:  # leaves are read lazily: a damaged file can fail here, long after open()
             row = self._con.execute("SELECT data FROM leaves WHERE key=?", (int(key),)).fetchone()
         except sqlite3.Error as exc:
@@ -347,21 +416,22 @@ class MapFile:
         if row is None:
             raise OctolgpError(f"map file {str(self.path)!r} lacks leaf {key}")
         try:
-            return decode_leaf(row[0], self._engine, self._grid)
+            leaf = decode_leaf(row[0], self._engine, self._grid)
+            if leaf.index.size != self._grid.dim or int(pack_keys(leaf.index[None])[0]) != key:
+                raise OctolgpError(f"leaf record holds leaf {leaf.index.tolist()}")
         except OctolgpError as exc:
             raise OctolgpError(f"map file {str(self.path)!r}, leaf {key}: {exc}") from None
+        return leaf
 
     def scans(self, start: int = 0) -> Iterator[Scan]:
         """The journaled scans with index > ``start``, in order."""
         try:
             cur = self._con.execute(
-                "SELECT idx, dim, origin, points, max_range, stamp FROM scans WHERE idx > ? "
-                "ORDER BY idx",
-                (start,),
+                f"SELECT {self._scan_select} FROM scans WHERE idx > ? ORDER BY idx", (start,)
             )
             for row in cur:  # one scan per row
                 yield _row_scan(row)
-        except (sqlite3.Error, ValueError, TypeError, ZeroDivisionError) as exc:
+        except (sqlite3.Error, OctolgpError, ValueError, TypeError, ZeroDivisionError) as exc:
             raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
 
     def read_scans(self, indices: list[int]) -> dict[int, Scan]:
@@ -371,17 +441,70 @@ class MapFile:
             for lo in range(0, len(indices), 500):  # bounded IN lists
                 part = [int(i) for i in indices[lo : lo + 500]]
                 cur = self._con.execute(
-                    "SELECT idx, dim, origin, points, max_range, stamp FROM scans WHERE idx IN "
+                    f"SELECT {self._scan_select} FROM scans WHERE idx IN "
                     f"({','.join('?' * len(part))})",
                     part,
                 )
                 for row in cur:  # one scan per row
                     out[int(row[0])] = _row_scan(row)
-        except (sqlite3.Error, ValueError, TypeError, ZeroDivisionError) as exc:
+        except (sqlite3.Error, OctolgpError, ValueError, TypeError, ZeroDivisionError) as exc:
             raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
         return out
 
+    @property
+    def _scan_select(self) -> str:
+        return _SCAN_COLUMNS + (", crc" if self._crc_column else ", NULL")
+
     # ------------------------------------------------------------------ writes
+    @contextmanager
+    def transaction(self) -> Iterator[sqlite3.Connection]:
+        """One write transaction; writes inside it (nested ones too) commit together.
+
+        On any exception it is rolled back: the file is as before it began.
+
+        Raises
+        ------
+        OctolgpError
+            If the file is read-only, or a write or the commit fails (a full disk, an
+            I/O error); the file then holds the state before the transaction.
+        """
+        if self.read_only:
+            raise OctolgpError(f"map file {str(self.path)!r} is open read-only")
+        if self._depth:
+            yield self._con
+            return
+        con = self._con
+        try:
+            con.execute("PRAGMA journal_mode=WAL")
+            con.execute("BEGIN IMMEDIATE")
+        except sqlite3.Error as exc:
+            raise self._failed(exc) from None
+        self._depth = 1
+        try:
+            if not self._crc_column:  # a file from before checksums gains the column
+                con.execute("ALTER TABLE scans ADD COLUMN crc INTEGER")
+                self._crc_column = True
+            con.execute("UPDATE meta SET value=? WHERE key='version'", (str(VERSION),))
+            yield con
+            con.execute("COMMIT")
+            self._wrote = True
+        except BaseException as exc:
+            if con.in_transaction:
+                with suppress(sqlite3.Error):  # a failed commit may have rolled back already
+                    con.execute("ROLLBACK")
+            self._crc_column = "crc" in {r[1] for r in con.execute("PRAGMA table_info(scans)")}
+            if isinstance(exc, sqlite3.Error):
+                raise self._failed(exc) from None
+            raise
+        finally:
+            self._depth = 0
+
+    def _failed(self, exc: sqlite3.Error) -> OctolgpError:
+        return OctolgpError(
+            f"map file {str(self.path)!r}: the write failed and was rolled back ({exc}); "
+            "the file holds the map before it"
+        )
+
     def commit(
         self,
         leaves: Iterable[tuple[int, Leaf]],
@@ -395,10 +518,9 @@ class MapFile:
         """
         written = []
         engine = self._engine
-        with _Transaction(self._con) as con:
-            con.execute("UPDATE meta SET value=? WHERE key='version'", (str(VERSION),))
+        with self.transaction() as con:
             con.executemany(
-                "INSERT INTO scans VALUES (?, ?, ?, ?, ?, ?)",
+                f"INSERT INTO scans({_SCAN_COLUMNS}, crc) VALUES (?, ?, ?, ?, ?, ?, ?)",
                 (_scan_row(i, s) for i, s in journal),
             )
             for k, leaf in leaves:  # one row per changed leaf
@@ -425,12 +547,12 @@ class MapFile:
         """
         written = []
         engine = self._engine
-        with _Transaction(self._con) as con:
-            con.execute("UPDATE meta SET value=? WHERE key='version'", (str(VERSION),))
+        with self.transaction() as con:
             for i, s in journal:  # one row per corrected scan
                 row = _scan_row(i, s)
                 con.execute(
-                    "UPDATE scans SET dim=?, origin=?, points=?, max_range=?, stamp=? WHERE idx=?",
+                    "UPDATE scans SET dim=?, origin=?, points=?, max_range=?, stamp=?, crc=? "
+                    "WHERE idx=?",
                     (*row[1:], i),
                 )
             con.executemany("DELETE FROM leaves WHERE key=?", ((int(k),) for k in removed))
@@ -441,17 +563,83 @@ class MapFile:
                 written.append(k)
         return written
 
-    def finish(self) -> None:
-        """Fold the write-ahead log into the file and leave it in rollback-journal mode."""
-        self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-        self._con.execute("PRAGMA journal_mode=DELETE")
-
     def close(self) -> None:
-        """Close the connection (and delete a temporary spill file)."""
-        self._con.close()
+        """Close the connection, then release the lock (and delete a temporary spill file).
+
+        A writer that wrote folds the write-ahead log into the file and leaves it in
+        rollback-journal mode (skipped, harmlessly, while a reader holds a snapshot).
+        """
+        try:
+            if self._wrote and not self.temporary and not self._con.in_transaction:
+                self._con.execute("PRAGMA busy_timeout=0")
+                busy, _, _ = self._con.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchone()
+                if not busy:
+                    self._con.execute("PRAGMA journal_mode=DELETE")
+        except sqlite3.Error:
+            pass  # the file stays a valid WAL-mode database
+        finally:
+            self._con.close()
+            if self._lock is not None:
+                self._lock.release()
         if self.temporary:
-            for suffix in ("", "-wal", "-shm"):
-                Path(str(self.path) + suffix).unlink(missing_ok=True)
+            _remove(self.path)
+
+
+def _read_header(p: Path, con: sqlite3.Connection) -> MapHeader:
+    """The state a map file records besides leaves and journal, checked."""
+    try:
+        meta = dict(con.execute("SELECT key, value FROM meta").fetchall())
+    except sqlite3.Error:
+        raise OctolgpError(f"map file {str(p)!r} is not an octolgp map") from None
+    if meta.get("format") != FORMAT:
+        raise OctolgpError(f"map file {str(p)!r} is not an octolgp map")
+    if meta.get("version") not in READABLE_VERSIONS:
+        raise OctolgpError(
+            f"map file {str(p)!r} has version {meta.get('version')}, expected "
+            f"{' or '.join(READABLE_VERSIONS)}"
+        )
+    try:
+        config = stored_config(json.loads(meta["config"]), meta.get("clear_scans"))
+        hp = _hp_of(meta["hyperparameters"])
+        n_scans = int(meta["n_scans"])
+        keys = [int(k) for (k,) in con.execute("SELECT key FROM leaves")]
+        journal = int(con.execute("SELECT COUNT(*) FROM scans").fetchone()[0])
+    except (sqlite3.Error, OctolgpError, KeyError, ValueError, TypeError) as exc:
+        raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
+    if journal not in (0, n_scans):  # 0: saved from memory, without a journal
+        raise OctolgpError(
+            f"map file {str(p)!r} is corrupt: {journal} journaled scans, n_scans {n_scans}"
+        )
+    return MapHeader(config, hp, n_scans, keys)
+
+
+def _remove(p: Path) -> None:
+    """Delete a database file and its journals."""
+    for suffix in ("", "-wal", "-shm", "-journal"):
+        Path(str(p) + suffix).unlink(missing_ok=True)
+
+
+def check_output(path: str | Path, *, overwrite: bool, own: Path | None = None) -> Path:
+    """The path a new map file may be written to, or ``OctolgpError`` saying why not.
+
+    Parameters
+    ----------
+    path : str or Path
+    overwrite : bool
+        Whether an existing file may be replaced.
+    own : Path, optional
+        The file of the map being written, never replaced by it.
+    """
+    p = Path(path)
+    if own is not None and p.exists() and os.path.samefile(p, own):
+        raise OctolgpError(f"path {str(p)!r} is the map's own file; save to another path")
+    if p.exists() and not overwrite:
+        raise OctolgpError(f"path {str(p)!r} already exists; pass overwrite=True to replace it")
+    if p.exists() and held_by_a_writer(p):
+        raise OctolgpError(f"path {str(p)!r} is a map open for writing elsewhere")
+    if p.is_dir():
+        raise OctolgpError(f"path {str(p)!r} is a directory")
+    return p
 
 
 def write_map(
@@ -461,36 +649,60 @@ def write_map(
     n_scans: int,
     leaves: Iterable[tuple[int, Leaf]],
     scans: Iterable[Scan] = (),
+    *,
+    overwrite: bool = False,
+    own: Path | None = None,
 ) -> None:
-    """Write a whole map to a new file at ``path``, atomically (temporary file, then rename).
+    """Write a whole map to a new file at ``path`` (a temporary file, then a rename).
 
     Parameters
     ----------
     path : str or Path
-        Replaced if it exists.
+        Where; an existing file is replaced only with ``overwrite``, and never when it
+        is ``own`` or open for writing.
     config, hyperparameters, n_scans
         The map's state.
     leaves : iterable of (int, Leaf)
         Every leaf, by packed key.
     scans : iterable of Scan
         The journal (scans 1, 2, ...): all ``n_scans`` of them, or none.
+    overwrite : bool
+        Replace an existing file.
+    own : Path, optional
+        The file of the map being saved.
 
     Raises
     ------
     OctolgpError
-        If the file cannot be written.
+        If the path is refused or the file cannot be written; an existing file at
+        ``path`` is then unchanged.
     """
-    p = Path(path)
-    tmp = p.with_name(p.name + ".tmp")
-    for suffix in ("", "-wal", "-shm"):
-        Path(str(tmp) + suffix).unlink(missing_ok=True)
+    p = check_output(path, overwrite=overwrite, own=own)
+    tmp = p.with_name(f".{p.name}.{secrets.token_hex(4)}.tmp")
     try:
-        f = MapFile.create(tmp, config, hyperparameters, n_scans, leaves, temporary=True)
-        f.temporary = False
-        f.commit([], enumerate(scans, start=1), hyperparameters, n_scans)
-        f.finish()
-        f.close()
+        f = MapFile.create(tmp, config, hyperparameters, n_scans, leaves)
+        try:
+            f.commit([], enumerate(scans, start=1), hyperparameters, n_scans)
+        finally:
+            f.close()
+        for suffix in ("-wal", "-shm"):  # a killed writer's log must not meet the new file
+            Path(str(p) + suffix).unlink(missing_ok=True)
         os.replace(tmp, p)
-    except (sqlite3.Error, OSError) as exc:
-        tmp.unlink(missing_ok=True)
+        _sync_dir(p.parent)
+    except (OctolgpError, OSError) as exc:
+        _remove(tmp)
         raise OctolgpError(f"path {str(p)!r}: cannot write the map ({exc})") from None
+
+
+def _sync_dir(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (where directories can be opened)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
