@@ -237,13 +237,20 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
     Raises
     ------
     OctolgpError
-        On bad scans, or scans that give no training data (every beam on its sensor).
+        On bad scans, scans that give no training data (every beam on its sensor) or
+        no return (every beam a no-return).
     """
     data = make_training_data(scans, config)
     if data.n_items == 0:
         raise OctolgpError(
             "learn_hyperparameters: the scans give no training data (every beam has zero "
             "length); pass MapConfig.hyperparameters or scans with real beams"
+        )
+    if data.hits.shape[0] == 0:
+        raise OctolgpError(
+            "learn_hyperparameters: the scans hold no return (every beam is a no-return, "
+            "so nothing is occupied to learn from); pass MapConfig.hyperparameters or "
+            "scans that hit something"
         )
     with threadpool_limits(limits=1):  # small matrices: one BLAS thread is fastest
         hp = learn_from_clusters(data, partition(data, config), config)

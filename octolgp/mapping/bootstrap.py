@@ -49,8 +49,14 @@ class Bootstrap(Generic[M]):
         return len(self.scans) >= self.config.learn_scans
 
     def can_learn(self) -> bool:
-        """Whether the buffered scans hold training data (a return, or a free segment)."""
-        return bool(self.scans) and make_training_data(self.scans, self.config).n_items > 0
+        """Whether the buffered scans hold data to learn from: a return at least.
+
+        Free segments alone (scans whose beams are all no-returns) say nothing of what
+        is occupied, so the map keeps buffering until a return arrives.
+        """
+        if not self.scans:
+            return False
+        return make_training_data(self.scans, self.config).hits.shape[0] > 0
 
     def learn(self) -> Hyperparameters:
         """The hyperparameters learnt on the buffered scans (nothing changes)."""
