@@ -56,7 +56,7 @@ class Bootstrap(Generic[M]):
         """
         if not self.scans:
             return False
-        return make_training_data(self.scans, self.config).hits.shape[0] > 0
+        return int(make_training_data(self.scans, self.config).hits.shape[0]) > 0
 
     def learn(self) -> Hyperparameters:
         """The hyperparameters learnt on the buffered scans (nothing changes)."""
