@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
     seconds = time.perf_counter() - t0
 
     # Export: floor plan, OctoMap, nav2.
-    with OnlineMap.open(path["octolgp"]) as m:
+    with OnlineMap.open(path["octolgp"], read_only=True) as m:
         n_scans, res = m.n_scans, m.config.resolution
         image = floor_plan(m.occupancy, *hits_box(m), res)
         write_floor_plan(path["png"], image)
