@@ -27,7 +27,7 @@ def cmd_query(args: argparse.Namespace) -> int:
         pts = np.load(pts_path, allow_pickle=False)
     except (ValueError, OSError) as exc:
         raise OctolgpError(f"--points {str(pts_path)!r} is not a .npy array: {exc}") from None
-    with OnlineMap.open(args.map) as m:
+    with OnlineMap.open(args.map, read_only=True) as m:
         prob = m.occupancy(pts, interpolate=not args.nearest)
     np.save(args.out, prob)
     print(f"wrote {args.out}: P(occupied) at {prob.size} points")
@@ -48,7 +48,7 @@ def cmd_export(args: argparse.Namespace) -> int:
     z_range = args.z_range
     if z_range is not None and out.suffix != ".pgm":
         raise OctolgpError("--z-range applies to a nav2 map (--out FILE.pgm) only")
-    with OnlineMap.open(args.map) as m:
+    with OnlineMap.open(args.map, read_only=True) as m:
         if out.suffix in (".bt", ".ot"):
             nodes = m.export_octomap(out, threshold=args.threshold)
             print(f"wrote {out}: {nodes} OctoMap nodes")
