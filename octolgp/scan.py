@@ -14,7 +14,9 @@ from octolgp.ros_msgs import laserscan_beams, pointcloud2_points, stamp_seconds
 FloatArray = NDArray[np.float64]
 
 
-def as_points(value: object, name: str, dim: int | None = None) -> FloatArray:
+def as_points(
+    value: object, name: str, dim: int | None = None, *, copy: bool = False
+) -> FloatArray:
     """Validate an ``(n, d)`` array of finite coordinates and return it as float64.
 
     Parameters
@@ -25,6 +27,9 @@ def as_points(value: object, name: str, dim: int | None = None) -> FloatArray:
         Field name used in the error message.
     dim : int, optional
         Required second dimension (2 or 3); any of 1, 2, 3 when omitted.
+    copy : bool, default False
+        Always return a new array that shares no memory with ``value``. Otherwise a
+        C-contiguous float64 ``value`` is returned as is.
 
     Raises
     ------
@@ -40,7 +45,10 @@ def as_points(value: object, name: str, dim: int | None = None) -> FloatArray:
     if arr.ndim != 2 or (dim is not None and arr.shape[1] != dim) or arr.shape[1] not in (1, 2, 3):
         want = f"(n, {dim})" if dim is not None else "(n, d) with d in 1..3"
         raise OctolgpError(f"{name} must have shape {want}, got {arr.shape}")
-    out = np.ascontiguousarray(arr, dtype=np.float64)
+    if copy:
+        out = np.array(arr, dtype=np.float64, order="C", copy=True)
+    else:
+        out = np.ascontiguousarray(arr, dtype=np.float64)
     if not np.isfinite(out).all():
         raise OctolgpError(f"{name} contains NaN or inf")
     return out
@@ -82,6 +90,12 @@ class Scan:
     OctolgpError
         On a wrong shape, a non-finite value, an empty scan, or a non-positive
         ``max_range``.
+
+    Notes
+    -----
+    The scan keeps read-only float64 copies of ``origin`` and ``points``: changing or
+    reusing the caller's arrays afterwards never changes the scan, and the caller's
+    arrays stay writeable.
     """
 
     origin: FloatArray
@@ -93,8 +107,11 @@ class Scan:
         origin = np.asarray(self.origin) if not isinstance(self.origin, np.ndarray) else self.origin
         if origin.ndim != 1 or origin.shape[0] not in (2, 3):
             raise OctolgpError(f"Scan.origin must have shape (2,) or (3,), got {origin.shape}")
-        origin = as_points(origin[None, :], "Scan.origin")[0]
-        points = as_points(self.points, "Scan.points", dim=origin.shape[0])
+        # A scan owns copies of its arrays: it freezes them and keeps them, so it must
+        # never keep (nor freeze) memory the caller can still write, such as a buffer a
+        # robot loop refills for every scan.
+        origin = as_points(origin[None, :], "Scan.origin", copy=True)[0]
+        points = as_points(self.points, "Scan.points", dim=origin.shape[0], copy=True)
         if points.shape[0] == 0:
             raise OctolgpError("Scan.points is empty: a scan needs at least one beam")
         if self.max_range is not None:
