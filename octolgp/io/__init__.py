@@ -9,9 +9,11 @@ Supported formats (``format=`` names):
 - ``"3dtk"``: a directory of 3DTK ``scanNNN.3d[.xz]`` files with ``.frames``/``.pose`` poses, or
   one such file (:mod:`octolgp.io.threedtk`), streamed scan by scan.
 - ``"rrd"``: a Rerun recording ``.rrd`` (:mod:`octolgp.io.rrd_read`), streamed chunk by chunk: the
-  exact scans that :func:`~octolgp.io.rrd_write.log_scan` wrote, else the ``Points3D``/``Points2D``
-  rows of any recording posed by its ``Transform3D``. :func:`~octolgp.io.rrd_read.read_rrd` takes
-  the options (points entity, pose entity, timeline, ``max_range``).
+  exact scans that :func:`~octolgp.io.rrd_write.log_scan` wrote (checksums verified; a scan whose
+  exact copy is lost is never replayed from its float32 display copy), else the
+  ``Points3D``/``Points2D`` rows of any recording posed by its ``Transform3D``.
+  :func:`~octolgp.io.rrd_read.read_rrd` takes the options (points entity, pose entity, timeline,
+  ``max_range``).
 - ``"rosbag"``: a ROS 1 ``.bag`` or a ROS 2 bag (directory with ``metadata.yaml``, or its
   ``.db3``/``.mcap``) read with ``rosbags`` (:mod:`octolgp.io.rosbag`): ``LaserScan`` or
   ``PointCloud2``, posed by ``/tf`` or a ``PoseStamped``/``Odometry`` topic; streamed.

@@ -5,7 +5,11 @@ Names
 :func:`octolgp.io.rrd_write.log_scan` writes, and :mod:`octolgp.io.rrd_read` reads, one scan
 per row on the :data:`SCAN_TIMELINE` sequence timeline (and on :data:`TIME_TIMELINE` when the
 scan has a stamp), with an exact float64 copy at :data:`SCAN_ENTITY` as the dynamic archetype
-:data:`SCAN_ARCHETYPE`.
+:data:`SCAN_ARCHETYPE`. The copy carries a CRC-32 (:data:`CHECKSUM_COMPONENT`, computed by
+:func:`scan_checksum`) that the reader verifies, and each row of the float32 display copy
+(the ``Points3D``/``Points2D`` a viewer shows) carries :data:`DISPLAY_MARK`, so a reader knows
+that a scan whose exact copy is missing had one: it never replays such a scan from its display
+copy, which has no ``max_range`` (its no-return beams would become hits).
 
 Framing
 -------
@@ -22,10 +26,17 @@ Nothing here imports rerun.
 from __future__ import annotations
 
 import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+from numpy.typing import ArrayLike
+
 __all__ = [
+    "CHECKSUM_COMPONENT",
+    "DISPLAY_ARCHETYPE",
+    "DISPLAY_MARK",
     "LEGACY_MAGICS",
     "RRD_MAGIC",
     "SCAN_ARCHETYPE",
@@ -34,6 +45,7 @@ __all__ = [
     "TIME_TIMELINE",
     "Framing",
     "looks_like_rrd",
+    "scan_checksum",
     "scan_framing",
 ]
 
@@ -41,6 +53,14 @@ SCAN_ENTITY = "octolgp/scan"
 """Entity of the exact float64 copy of each scan."""
 SCAN_ARCHETYPE = "octolgp.Scan"
 """Archetype name of that copy; its components are ``octolgp.Scan:origin`` and so on."""
+CHECKSUM_COMPONENT = "crc32"
+"""Component of the exact copy holding its CRC-32 (uint32, :func:`scan_checksum`).
+Recordings written before it existed have none and are read unchecked."""
+DISPLAY_ARCHETYPE = "octolgp.ScanDisplay"
+"""Archetype logged on each row of a scan's display copy, beside its ``Points3D``/``Points2D``."""
+DISPLAY_MARK = f"{DISPLAY_ARCHETYPE}:exact"
+"""Component of a display row (int64, 1): this scan's exact copy is logged at
+:data:`SCAN_ENTITY` at the same :data:`SCAN_TIMELINE` value."""
 SCAN_TIMELINE = "scan"
 """Sequence timeline of the scans: the scan's index."""
 TIME_TIMELINE = "time"
@@ -52,6 +72,40 @@ LEGACY_MAGICS = (b"RRF0", b"RRF1")
 _STREAM_HEADER = 12
 _MESSAGE_HEADER = struct.Struct("<QQ")
 _END, _KINDS = 0, frozenset({0, 1, 2, 3})
+
+
+def scan_checksum(
+    index: int,
+    dim: ArrayLike,
+    origin: ArrayLike,
+    points: ArrayLike,
+    max_range: ArrayLike,
+    stamp: ArrayLike,
+) -> int:
+    """CRC-32 of one exact scan record, over its components' little-endian bytes.
+
+    Covers, in order: the :data:`SCAN_TIMELINE` value ``index`` and ``dim`` (int64), then
+    ``origin``, ``points``, ``max_range`` and ``stamp`` (float64; NaN where absent), exactly as
+    :func:`octolgp.io.rrd_write.log_scan` logs them, so flipped bytes in any of them, or in the
+    row's scan number, change it.
+
+    Parameters
+    ----------
+    index : int
+        The row's value on the :data:`SCAN_TIMELINE` timeline.
+    dim, origin, points, max_range, stamp : array_like
+        The record's components as logged (``points`` flattened row-major).
+
+    Returns
+    -------
+    int
+        The CRC-32, in ``[0, 2**32)``.
+    """
+    crc = zlib.crc32(np.array([index], dtype="<i8").tobytes())
+    crc = zlib.crc32(np.ascontiguousarray(dim, dtype="<i8").tobytes(), crc)
+    for part in (origin, points, max_range, stamp):
+        crc = zlib.crc32(np.ascontiguousarray(part, dtype="<f8").reshape(-1).data, crc)
+    return crc
 
 
 def looks_like_rrd(path: str | Path) -> bool:

@@ -10,6 +10,15 @@ scale; ``ChildFromParent`` inverted; see :mod:`octolgp.io.rrd_survey`). ``Transf
 named frames (``child_frame``/``parent_frame``) and ``CoordinateFrame`` are not supported and
 raise.
 
+Exact copies: each ``octolgp/scan`` record's CRC-32 (when it has one, see
+:mod:`octolgp.io.rrd_format`) is verified, and a mismatch raises naming the scan. The float32
+display copy of a scan (the ``Points3D``/``Points2D`` rows that :func:`~octolgp.io.rrd_write.log_scan`
+marks, or ``world/sensor/points`` in older octolgp recordings) is never used in place of a
+missing exact copy: it has no ``max_range``, so its no-return beams would become hits at the
+sensor's maximum range. A recording whose exact copies are all lost is refused unless the
+display entity is named (``points=``); scans of which only the display copy survives are left
+out with one WARNING saying how many.
+
 Files written by a killed process or cut at any byte (the framing is described in
 :mod:`octolgp.io.rrd_format`): a killed writer leaves no End message; rerun 0.41 reads such a
 file (with a ``RerunWarning``, which this reader records in ``notes``), but rejects the whole
@@ -38,10 +47,13 @@ from numpy.typing import NDArray
 from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.io.base import ScanStream
 from octolgp.io.rrd_format import (
+    CHECKSUM_COMPONENT,
     LEGACY_MAGICS,
     RRD_MAGIC,
     SCAN_ARCHETYPE,
     SCAN_ENTITY,
+    SCAN_TIMELINE,
+    scan_checksum,
     scan_framing,
 )
 from octolgp.io.rrd_survey import (
@@ -61,6 +73,26 @@ logger = logging.getLogger(__name__)
 
 _T = TypeVar("_T")
 _RERUN_ERRORS = (RuntimeError, ValueError, OSError)
+_LEGACY_DISPLAY = "/world/sensor/points"  # the display copy in octolgp recordings without marks
+_SINK_METRIC = "/metrics/insert_seconds"  # logged by octolgp's RerunSink only
+
+
+def _scan_indices(blocks: list[Rows]) -> IntArray:
+    """The :data:`~octolgp.io.rrd_format.SCAN_TIMELINE` values of rows (those on it)."""
+    parts = [b.times[SCAN_TIMELINE] for b in blocks if SCAN_TIMELINE in b.times]
+    return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+
+def _ranges(values: list[int], most: int = 6) -> str:
+    """Sorted integers as runs, ``0..4, 7, 9..12``, the first ``most`` runs then ``...``."""
+    runs: list[list[int]] = []
+    for v in values:
+        if runs and v == runs[-1][1] + 1:
+            runs[-1][1] = v
+        else:
+            runs.append([v, v])
+    text = [f"{a}" if a == b else f"{a}..{b}" for a, b in runs[:most]]
+    return ", ".join(text) + (", ..." if len(runs) > most else "")
 
 
 def _captured(notes: list[str], fn: Callable[[], _T]) -> _T:
@@ -118,6 +150,9 @@ class RrdScanReader(ScanStream):
         Non-finite points dropped from generic recordings (a row with none left is skipped).
     skipped_bytes : int
         Bytes at the end of the file that were not read (an incomplete last message).
+    lost : int
+        Scans of an octolgp recording whose exact copy is missing (cut off or damaged) while
+        their display copy is there; they are not replayed.
     closed : bool
         Whether the writer closed the file (it has an End message).
     notes : list of str
@@ -129,8 +164,10 @@ class RrdScanReader(ScanStream):
         If ``path`` does not exist.
     OctolgpError
         At construction, naming the file, if it is not a Rerun recording, holds no complete
-        message, is corrupt, holds no scans, or lacks the named entity or timeline; while
-        iterating, if a scan is invalid (without ``skip_bad``).
+        message, is corrupt, holds no scans, lacks the named entity or timeline, or was
+        written by octolgp but holds none of its scans' exact copies (unless ``points=``
+        names the display entity); while iterating, if a scan is invalid or its exact copy
+        fails its checksum (without ``skip_bad``), naming the scan.
     """
 
     def __init__(
@@ -157,6 +194,7 @@ class RrdScanReader(ScanStream):
         self.skipped_bytes = 0
         self.count = 0
         self.dropped_points = 0
+        self.lost = 0
         self.entity = ""
         self.pose_entity: str | None = None
         self.closed = False
@@ -165,6 +203,8 @@ class RrdScanReader(ScanStream):
         survey = self._survey()
         self.exact = self._choose_entity(survey, points, pose)
         self.timeline = self._choose_timeline(survey, timeline)
+        self._checksummed = survey.checksummed
+        self._check_display_copies(survey, explicit=points is not None or pose is not None)
         self._plan(survey)
         self._scans = self._generate()
 
@@ -321,6 +361,60 @@ class RrdScanReader(ScanStream):
             )
         return False
 
+    def _display_copies(self, survey: Survey) -> dict[str, list[Rows]]:
+        """Points rows that are the float32 display copy of a scan with an exact copy.
+
+        Rows marked by :func:`~octolgp.io.rrd_write.log_scan`, and in an older octolgp
+        recording (one with exact records or the sink's metrics) the rows of its default
+        display entity.
+        """
+        out = dict(survey.displays)
+        octolgp_made = bool(survey.scans) or _SINK_METRIC in survey.entities
+        if octolgp_made and _LEGACY_DISPLAY in survey.points and _LEGACY_DISPLAY not in out:
+            out[_LEGACY_DISPLAY] = survey.points[_LEGACY_DISPLAY]
+        return out
+
+    def _check_display_copies(self, survey: Survey, *, explicit: bool) -> None:
+        """Never let a display copy stand in for an exact one; say what is lost.
+
+        Raises
+        ------
+        OctolgpError
+            If the recording was written by octolgp, none of its exact copies survives and
+            the caller did not name an entity.
+        """
+        displays = self._display_copies(survey)
+        if not displays:
+            return
+        shown = {int(i) for blocks in displays.values() for i in _scan_indices(blocks)}
+        if self.exact:
+            exact = {int(i) for i in _scan_indices(survey.scans)}
+            missing = sorted(shown - exact)
+            if missing:
+                self.lost = len(missing)
+                self.notes.append(
+                    f"{len(missing)} of {len(shown | exact)} scans have only their float32 display "
+                    f"copy, their exact copy being cut off or damaged ({SCAN_TIMELINE}="
+                    f"{_ranges(missing)}); they are not replayed"
+                )
+                logger.warning("%s: %s", self._what(), self.notes[-1])
+            return
+        if not explicit and not survey.scans:
+            names = sorted(displays)
+            raise OctolgpError(
+                f"{self._what()} was written by octolgp, but none of the exact copies "
+                f"({SCAN_ENTITY}) of its {len(shown)} scans can be read: the file is cut off "
+                f"or damaged. Its display copy {names[0]} is float32 and has no max_range, so "
+                "its no-return beams would become hits; to replay it anyway, name it "
+                f"(points={names[0].lstrip('/')!r}) and give max_range"
+            )
+        if self.entity in displays and self.max_range is None:
+            self.notes.append(
+                f"{self.entity} is octolgp's float32 display copy and has no max_range: "
+                "no-return beams replay as hits (give max_range, or read the exact copies)"
+            )
+            logger.warning("%s: %s", self._what(), self.notes[-1])
+
     def _rows(self, survey: Survey) -> list[Rows]:
         return survey.scans if self.exact else survey.points[self.entity]
 
@@ -420,6 +514,9 @@ class RrdScanReader(ScanStream):
         rows = np.concatenate([b.rows for b in on])
         q = np.concatenate([b.times[self.timeline] for b in on])
         seqs = np.concatenate([np.full(len(b.rows), b.seq) for b in on])
+        indices = np.concatenate(
+            [b.times.get(SCAN_TIMELINE, np.full(len(b.rows), -1, np.int64)) for b in on]
+        )
         dims = np.concatenate([np.full(len(b.rows), b.dim) for b in on])
         # Stamp (s): the ordering timeline if it is a time, else the row's first time timeline.
         kinds = survey.timeline_kinds
@@ -443,6 +540,7 @@ class RrdScanReader(ScanStream):
         self._chunks = [chunks[i] for i in order]
         self._rows_in_chunk = rows[order]
         self._times = q[order]
+        self._indices = indices[order]
         self._stamps = stamps[order]
         self._poses = None if poses is None else np.ascontiguousarray(poses[order])
         self._dims = dims[order]
@@ -532,16 +630,36 @@ class RrdScanReader(ScanStream):
         )
 
     def _exact(self, cols: dict[str, Any], pos: int) -> Scan | None:
-        """The float64 ``octolgp/scan`` record of one row."""
+        """The float64 ``octolgp/scan`` record of one row, its checksum verified."""
         row = int(self._rows_in_chunk[pos])
 
-        def value(name: str) -> FloatArray:
+        def raw(name: str) -> NDArray[Any] | None:
             col = cols.get(f"{SCAN_ARCHETYPE}:{name}")
             if col is None or not col[row].is_valid:
-                return np.full(1, np.nan)
-            return np.asarray(col[row].values.to_numpy(zero_copy_only=False), dtype=np.float64)
+                return None
+            return np.asarray(col[row].values.to_numpy(zero_copy_only=False))
+
+        def value(name: str) -> FloatArray:
+            got = raw(name)
+            return np.full(1, np.nan) if got is None else np.asarray(got, dtype=np.float64)
+
+        def verify() -> None:
+            stored = raw(CHECKSUM_COMPONENT)
+            if stored is None:
+                if self._checksummed:
+                    raise OctolgpError("its exact copy has lost its checksum: it is damaged")
+                return  # written before exact copies carried one
+            parts = [raw(n) for n in ("dim", "origin", "points", "max_range", "stamp")]
+            if stored.shape != (1,) or any(p is None for p in parts):
+                raise OctolgpError("its exact copy is damaged (a component is missing)")
+            crc = scan_checksum(int(self._indices[pos]), *parts)  # type: ignore[arg-type]
+            if crc != int(stored[0]):
+                raise OctolgpError(
+                    f"its exact copy is corrupt: CRC-32 {crc:08x}, stored {int(stored[0]):08x}"
+                )
 
         def build() -> Scan:
+            verify()
             dim = int(value("dim")[0])
             origin = value("origin")
             max_range, stamp = value("max_range")[0], value("stamp")[0]

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.geometry.rotations import axis_angle_to_matrix, quaternion_to_matrix
-from octolgp.io.rrd_format import SCAN_ARCHETYPE, SCAN_ENTITY
+from octolgp.io.rrd_format import CHECKSUM_COMPONENT, DISPLAY_MARK, SCAN_ARCHETYPE, SCAN_ENTITY
 from octolgp.scan import FloatArray
 
 __all__ = [
@@ -212,6 +212,12 @@ class Survey:
         Entities with static points only (not scans).
     scans : list of Rows
         The ``octolgp/scan`` records.
+    checksummed : bool
+        Whether any chunk of ``octolgp/scan`` records has a checksum column (then every
+        record must have one).
+    displays : dict of str to list of Rows
+        Points rows marked as the display copy of a scan that has an exact copy
+        (:data:`~octolgp.io.rrd_format.DISPLAY_MARK`), per entity.
     poses : dict of str to list of Rows
         ``Transform3D`` rows per entity, with their matrices.
     named_frames : set of str
@@ -225,6 +231,8 @@ class Survey:
     points: dict[str, list[Rows]] = field(default_factory=dict)
     static_points: set[str] = field(default_factory=set)
     scans: list[Rows] = field(default_factory=list)
+    checksummed: bool = False
+    displays: dict[str, list[Rows]] = field(default_factory=dict)
     poses: dict[str, list[Rows]] = field(default_factory=dict)
     named_frames: set[str] = field(default_factory=set)
     chunks: int = 0
@@ -252,6 +260,7 @@ class Survey:
             has = _lengths(cols[f"{SCAN_ARCHETYPE}:points"]) > 0
             if has.any() and not static:
                 self.scans.append(rows_of(has))
+                self.checksummed |= f"{SCAN_ARCHETYPE}:{CHECKSUM_COMPONENT}" in cols
         for name, dim in _POINT_COMPONENTS.items():
             if name in cols:
                 has = _lengths(cols[name]) > 0
@@ -261,6 +270,10 @@ class Survey:
                     block = rows_of(has)
                     block.dim = dim
                     self.points.setdefault(entity, []).append(block)
+                    if DISPLAY_MARK in cols:
+                        marked = has & (_lengths(cols[DISPLAY_MARK]) > 0)
+                        if marked.any():
+                            self.displays.setdefault(entity, []).append(rows_of(marked))
         transform = {k: v for k, v in cols.items() if k in _TRANSFORM_COMPONENTS}
         if transform:
             M, has, named = _transform_rows(transform)

@@ -7,10 +7,14 @@ timestamp timeline, in seconds since the epoch, when the scan has a stamp):
   pose. Our scans carry no heading, so the sensor frame is world-aligned and centred on the
   origin (a 2D origin is padded with ``z = 0``).
 - ``{prefix}/points``: ``Points3D`` (3D scan) or ``Points2D`` (2D scan), the endpoints in the
-  sensor frame, ``points - origin``. Rerun stores positions as float32.
+  sensor frame, ``points - origin``. Rerun stores positions as float32. The same row carries
+  ``octolgp.ScanDisplay:exact`` (:data:`~octolgp.io.rrd_format.DISPLAY_MARK`): this display
+  copy has an exact copy, so a reader never replays the scan from it.
 - ``octolgp/scan``: the exact scan, as the dynamic archetype ``octolgp.Scan`` with float64
   components ``origin`` ``(d,)``, ``points`` ``(n*d,)`` (row-major), ``max_range`` and ``stamp``
-  (NaN when absent), and int64 ``dim``. This copy is what makes a replay bit-identical.
+  (NaN when absent), int64 ``dim``, and uint32 ``crc32``, the CRC-32 of all of them and of the
+  scan's index (:func:`~octolgp.io.rrd_format.scan_checksum`). This copy is what makes a
+  replay bit-identical; the checksum is what tells a corrupt copy from a good one.
 
 :mod:`octolgp.io.rrd_read` reads such recordings (and any other) back. rerun is imported when
 :func:`log_scan` is first called, not with this module.
@@ -22,7 +26,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from octolgp.io.rrd_format import SCAN_ARCHETYPE, SCAN_ENTITY, SCAN_TIMELINE, TIME_TIMELINE
+from octolgp.io.rrd_format import (
+    CHECKSUM_COMPONENT,
+    DISPLAY_ARCHETYPE,
+    SCAN_ARCHETYPE,
+    SCAN_ENTITY,
+    SCAN_TIMELINE,
+    TIME_TIMELINE,
+    scan_checksum,
+)
 from octolgp.scan import Scan
 
 if TYPE_CHECKING:
@@ -32,6 +44,8 @@ __all__ = ["log_scan"]
 
 _IDENTITY3 = np.eye(3)
 _IDENTITY3.setflags(write=False)
+_EXACT = np.ones(1, dtype=np.int64)
+_EXACT.setflags(write=False)
 
 
 def log_scan(
@@ -61,7 +75,11 @@ def log_scan(
     translation[: scan.dim] = scan.origin
     rec.log(prefix, rr.Transform3D(translation=translation, mat3x3=_IDENTITY3))
     local = scan.points - scan.origin
-    rec.log(f"{prefix}/points", rr.Points3D(local) if scan.dim == 3 else rr.Points2D(local))
+    rec.log(
+        f"{prefix}/points",
+        rr.Points3D(local) if scan.dim == 3 else rr.Points2D(local),
+        rr.DynamicArchetype(DISPLAY_ARCHETYPE, components={"exact": _EXACT}),
+    )
     nan = np.nan
     components = {
         "origin": scan.origin,
@@ -70,4 +88,6 @@ def log_scan(
         "max_range": np.array([nan if scan.max_range is None else scan.max_range]),
         "stamp": np.array([nan if scan.stamp is None else scan.stamp]),
     }
+    crc = scan_checksum(index, **components)
+    components[CHECKSUM_COMPONENT] = np.array([crc], dtype=np.uint32)
     rec.log(SCAN_ENTITY, rr.DynamicArchetype(SCAN_ARCHETYPE, components=components))
