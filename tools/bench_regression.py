@@ -10,6 +10,10 @@ both alike. Prints the median ``insert_scan`` time of each run and the ratio of 
 medians (working tree / baseline). Only the public API is used, so both trees run
 the same code here.
 
+``--file``: every map has a file, so each insert is committed (WAL, ``synchronous=FULL``):
+the cost of the file's guarantees (the checksums' share of the insert time is timed
+in the same run).
+
 ``--scene 3dtk``: the 3DTK fixture ``tests/data/3dtk`` instead (3 scans at 0.2 m,
 downsampled to 0.2 m, given hyperparameters, each scan inserted into a fresh map per
 repeat of ``--scans`` passes), the 3D path's per-leaf bookkeeping.
@@ -18,6 +22,7 @@ Run from the repository root::
 
     .venv/bin/python tools/bench_regression.py --baseline 89ae9f4
     .venv/bin/python tools/bench_regression.py --baseline 89ae9f4 --scene 3dtk
+    .venv/bin/python tools/bench_regression.py --baseline 42762a2 --file
 """
 
 from __future__ import annotations
@@ -33,41 +38,74 @@ from pathlib import Path
 import numpy as np
 from compare_maps import REPO, export_tree
 
-DRIVER = """
+TIMED_CRC = """
+import time, zlib
+import octolgp.persist.mapfile as mapfile
+crc_seconds = [0.0]
+class _TimedZlib:
+    @staticmethod
+    def crc32(data, value=0):
+        t = time.perf_counter()
+        out = zlib.crc32(data, value)
+        crc_seconds[0] += time.perf_counter() - t
+        return out
+if hasattr(mapfile, "zlib"):  # checksums exist in this tree: time them
+    mapfile.zlib = _TimedZlib
+def where(n):
+    return None if sys.argv[4] == "-" else f"{sys.argv[4]}/map-{n}.octolgp"
+"""
+
+DRIVER = (
+    """
 import dataclasses, json, sys
 import numpy as np
 import octolgp
 from octolgp import MapConfig, OnlineConfig, OnlineMap, learn_hyperparameters, load_scans
+"""
+    + TIMED_CRC
+    + """
 scans = list(load_scans(sys.argv[1]))[: int(sys.argv[2])]
 config = MapConfig(dim=2, resolution=0.1)
 hp = learn_hyperparameters(scans[:10], config)
 online = dataclasses.replace(config.online, n_jobs=int(sys.argv[3]))
-m = OnlineMap(dataclasses.replace(config, hyperparameters=hp, online=online))
+m = OnlineMap(dataclasses.replace(config, hyperparameters=hp, online=online), where(0))
 sec = [m.insert_scan(s).seconds for s in scans]
-print(json.dumps({"file": octolgp.__file__, "seconds": sec}))
+m.close()
+print(json.dumps({"file": octolgp.__file__, "seconds": sec, "crc": crc_seconds[0]}))
 """
+)
 
-DRIVER_3D = """
+DRIVER_3D = (
+    """
 import json, sys
 import octolgp
 from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, load_scans
+"""
+    + TIMED_CRC
+    + """
 scans = [s.downsample(0.2) for s in load_scans(sys.argv[1])]
 hp = Hyperparameters(length_scale=1.0, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
 config = MapConfig(dim=3, resolution=0.2, hyperparameters=hp,
                    online=OnlineConfig(n_jobs=int(sys.argv[3])))
 sec = []
-for _ in range(int(sys.argv[2])):
-    m = OnlineMap(config)
+for n in range(int(sys.argv[2])):
+    m = OnlineMap(config, where(n))
     sec += [m.insert_scan(s).seconds for s in scans]
     m.close()
-print(json.dumps({"file": octolgp.__file__, "seconds": sec}))
+print(json.dumps({"file": octolgp.__file__, "seconds": sec, "crc": crc_seconds[0]}))
 """
+)
 
 
-def run(tree: Path, log: Path, scans: int, jobs: int, driver: str = DRIVER) -> list[float]:
-    """Per-scan insert seconds of the octolgp under ``tree``."""
+def run(
+    tree: Path, log: Path, scans: int, jobs: int, driver: str = DRIVER, folder: str = "-"
+) -> tuple[list[float], float]:
+    """Per-scan insert seconds of the octolgp under ``tree``, and the seconds in CRC-32.
+
+    ``folder``: where the maps' files go (``"-"``: maps in memory).
+    """
     out = subprocess.run(
-        [sys.executable, "-P", "-c", driver, str(log), str(scans), str(jobs)],
+        [sys.executable, "-P", "-c", driver, str(log), str(scans), str(jobs), folder],
         env={**os.environ, "PYTHONPATH": str(tree), "PYTHONDONTWRITEBYTECODE": "1"},
         cwd=tree,
         check=True,
@@ -77,7 +115,7 @@ def run(tree: Path, log: Path, scans: int, jobs: int, driver: str = DRIVER) -> l
     result = json.loads(out.stdout.strip().splitlines()[-1])
     if not result["file"].startswith(str(tree)):
         raise SystemExit(f"imported {result['file']}, not the octolgp under {tree}")
-    return list(result["seconds"])
+    return list(result["seconds"]), float(result["crc"])
 
 
 def main() -> int:
@@ -87,6 +125,9 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=2, help="threads refitting leaves")
     parser.add_argument("--repeats", type=int, default=2, help="alternating runs per side")
     parser.add_argument("--scene", choices=["intel", "3dtk"], default="intel")
+    parser.add_argument(
+        "--file", action="store_true", help="maps with a file (every insert committed)"
+    )
     args = parser.parse_args()
     log = REPO / "data" / "intel_lab" / "intel-corrected.log.gz"
     driver, title = DRIVER, f"Intel, first {args.scans} scans, 0.1 m, hp on 10 scans"
@@ -99,16 +140,20 @@ def main() -> int:
         full = export_tree(args.baseline, base)
         sides = {f"baseline {full[:7]}": base, "working tree": REPO}
         medians: dict[str, list[float]] = {name: [] for name in sides}
-        print(f"{title}, n_jobs={args.jobs}")
-        print("| run | side | median ms | mean ms | p90 ms |")
-        print("|---|---|---|---|---|")
+        where = "with a map file" if args.file else "in memory"
+        print(f"{title}, n_jobs={args.jobs}, {where}")
+        print("| run | side | median ms | mean ms | p90 ms | CRC-32 share |")
+        print("|---|---|---|---|---|---|")
         for r in range(args.repeats):  # alternate the sides
             for name, tree in sides.items():
-                sec = 1e3 * np.array(run(tree, log, args.scans, args.jobs, driver))
+                with tempfile.TemporaryDirectory(dir=tmp) as maps:
+                    folder = maps if args.file else "-"
+                    seconds, crc = run(tree, log, args.scans, args.jobs, driver, folder)
+                sec = 1e3 * np.array(seconds)
                 medians[name].append(float(np.median(sec)))
                 print(
                     f"| {r + 1} | {name} | {np.median(sec):.1f} | {sec.mean():.1f} | "
-                    f"{np.percentile(sec, 90):.1f} |",
+                    f"{np.percentile(sec, 90):.1f} | {1e3 * crc / sec.sum():.2%} |",
                     flush=True,
                 )
     b, w = (float(np.median(v)) for v in medians.values())

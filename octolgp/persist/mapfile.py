@@ -276,6 +276,7 @@ class MapFile:
         *,
         lock: WriterLock | None = None,
         temporary: bool = False,
+        created: bool = False,
     ) -> None:
         self.path = path
         self._con = con
@@ -286,7 +287,7 @@ class MapFile:
         self._engine = engine_for(header.config)
         self._grid = LeafGrid.from_config(header.config)
         self._depth = 0  # open write transactions (nested ones join the outer)
-        self._wrote = False
+        self._wrote = created  # a writer that wrote leaves the file in rollback-journal mode
         self._crc_column = "crc" in {r[1] for r in con.execute("PRAGMA table_info(scans)")}
 
     # ------------------------------------------------------------------ create / open
@@ -340,9 +341,7 @@ class MapFile:
             _remove(p)
             raise OctolgpError(f"path {str(p)!r}: cannot create the map file ({exc})") from None
         header = MapHeader(config, hyperparameters, n_scans, keys)
-        f = cls(p, con, header, lock=lock, temporary=temporary)
-        f._wrote = True
-        return f
+        return cls(p, con, header, lock=lock, temporary=temporary, created=True)
 
     @classmethod
     def spill(cls, config: MapConfig) -> MapFile:
