@@ -7,6 +7,7 @@ learning without returns, and reads that must not change the file.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import sqlite3
@@ -47,8 +48,12 @@ def values(m: OnlineMap) -> np.ndarray:
     return m.occupancy(PROBE)
 
 
-def reference(scans: list[Scan]) -> np.ndarray:
-    m = OnlineMap(CONFIG)
+def config_with(engine: str) -> MapConfig:
+    return dataclasses.replace(CONFIG, online=dataclasses.replace(CONFIG.online, engine=engine))
+
+
+def reference(scans: list[Scan], engine: str = "lattice") -> np.ndarray:
+    m = OnlineMap(config_with(engine))
     m.insert_scans(scans)
     return values(m)
 
@@ -94,21 +99,24 @@ def test_save_refuses_to_replace_a_map_open_for_writing(tmp_path: Path) -> None:
         assert back.n_scans == 2
 
 
+AFTER = room_scan((0.3, 0.2), n=1440, size=9.0)
+"""A scan after the failed one, with more items in the leaves the failed one reached."""
+
 _FULL_DISK = """
 import resource, signal, sys
 import numpy as np
 sys.path.insert(0, {tests!r})
-from test_guarantees import CONFIG, SCANS, PROBE, room_scan
+from test_guarantees import AFTER, SCANS, PROBE, config_with, room_scan
 from octolgp import OctolgpError, OnlineMap
 path = sys.argv[1]
-m = OnlineMap(CONFIG, path=path)
+m = OnlineMap(config_with(sys.argv[2]), path=path)
 m.insert_scans(SCANS[:3])
 before = m.occupancy(PROBE)
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG
 _, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
 resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))  # smaller than any new page
 try:
-    m.insert_scan(room_scan((0.0, 0.0), n=720, size=9.0))
+    m.insert_scan(room_scan((0.0, 0.0), n=720, size=9.0))  # reaches the map's leaves too
 except OctolgpError as exc:
     print("refused:", exc)
 else:
@@ -116,16 +124,20 @@ else:
 resource.setrlimit(resource.RLIMIT_FSIZE, (hard, hard))
 assert m.n_scans == 3, m.n_scans
 np.testing.assert_array_equal(m.occupancy(PROBE), before)
-m.insert_scan(SCANS[3])  # the disk has room again: the map goes on
+m.insert_scan(AFTER)  # the disk has room again: the map goes on
 m.close()
 """
 
 
-def test_a_failed_commit_leaves_the_map_and_its_file_as_before(tmp_path: Path) -> None:
+@pytest.mark.parametrize("engine", ["lattice", "exact"])
+def test_a_failed_commit_leaves_the_map_and_its_file_as_before(tmp_path: Path, engine: str) -> None:
     path = tmp_path / "m.octolgp"
     script = _FULL_DISK.format(tests=str(ROOT / "tests"))
     run = subprocess.run(
-        [sys.executable, "-c", script, str(path)], capture_output=True, text=True, timeout=300
+        [sys.executable, "-c", script, str(path), engine],
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert run.returncode == 0, run.stderr[-2000:]
     assert "refused:" in run.stdout
@@ -133,8 +145,8 @@ def test_a_failed_commit_leaves_the_map_and_its_file_as_before(tmp_path: Path) -
     assert "rolled back" in run.stdout
     with OnlineMap.open(path, read_only=True) as back:
         assert back.n_scans == 4
-        assert same_scans(list(back.scans()), SCANS[:4])
-        np.testing.assert_array_equal(values(back), reference(SCANS[:4]))
+        assert same_scans(list(back.scans()), [*SCANS[:3], AFTER])
+        np.testing.assert_array_equal(values(back), reference([*SCANS[:3], AFTER], engine))
 
 
 def test_a_full_disk_in_the_cli_is_one_line_and_exit_2(tmp_path: Path) -> None:
@@ -413,3 +425,23 @@ def test_a_read_only_map_in_a_read_only_directory_can_be_queried(tmp_path: Path)
             np.testing.assert_array_equal(values(back), reference(SCANS[:2]))
     finally:
         folder.chmod(0o755)
+
+
+@pytest.mark.parametrize(
+    ("key", "value"), [("config", "null"), ("config", "[1, 2]"), ("hyperparameters", "[1]")]
+)
+def test_a_map_file_with_a_null_config_is_refused_naming_the_file(
+    tmp_path: Path, key: str, value: str
+) -> None:
+    path = tmp_path / "m.octolgp"
+    with OnlineMap(CONFIG, path=path) as m:
+        m.insert_scan(SCANS[0])
+    con = sqlite3.connect(path)
+    con.execute("UPDATE meta SET value=? WHERE key=?", (value, key))
+    con.commit()
+    con.close()
+    before = path.read_bytes()
+    for read_only in (True, False):
+        with pytest.raises(OctolgpError, match=rf"{path.name}.* is corrupt: .*JSON object"):
+            OnlineMap.open(path, read_only=read_only)
+    assert path.read_bytes() == before

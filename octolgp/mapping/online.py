@@ -82,7 +82,7 @@ def _step_of_state(method: Callable[..., R]) -> Callable[..., R]:
     The call holds the map's lock (calls from several threads run one at a time), is
     refused on a closed, read-only or broken map, and when it raises before any write
     reached the store the map's counters and learning buffer are put back as they
-    were, so the map is exactly as before the call.
+    were and the engine's caches are dropped, so the map is exactly as before the call.
     """
 
     @functools.wraps(method)
@@ -97,6 +97,7 @@ def _step_of_state(method: Callable[..., R]) -> Callable[..., R]:
                 if self._writes == writes:
                     self.n_scans, self.hyperparameters = before[0], before[1]
                     self._bootstrap.restore(before[2])
+                    self.engine = engine_for(self.config)  # its caches saw the lost step
                 raise
 
     return step
