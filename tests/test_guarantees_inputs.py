@@ -9,9 +9,13 @@ bombs), which must be refused from the header before anything is read or inflate
 from __future__ import annotations
 
 import array
+import gzip
 import logging
 import re
 import struct
+import subprocess
+import sys
+import zipfile
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -19,9 +23,15 @@ import numpy as np
 import pytest
 import rerun as rr
 
-from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, Scan
+from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, Scan, load_scans
+from octolgp.io import limits, npz, pcd
+from octolgp.io.carmen import CarmenReader
+from octolgp.io.octomap_graph import ScanDatReader
+from octolgp.io.pcd import PcdReader
+from octolgp.io.ply import PlyReader
 from octolgp.io.rrd_read import read_rrd
 from octolgp.io.rrd_write import log_scan
+from octolgp.io.threedtk import ThreeDTKReader
 from octolgp.sinks.rerun import RerunSink, open_recording
 
 # --- Scan owns copies of its arrays ------------------------------------------------
@@ -337,3 +347,307 @@ def test_flipped_bytes_in_an_exact_copy_raise_naming_the_scan(tmp_path: Path, pa
     for a, b in zip(got, [scans[0], scans[1], scans[3]], strict=True):
         _same(a, b)
     assert reader.skipped == 1
+
+
+# --- Size limits, checked from headers before reading or decompressing ---------------
+
+ROOT = Path(__file__).resolve().parents[1]
+HUGE = 10**12
+
+RSS_PROBE = """
+import resource, sys
+from octolgp.errors import OctolgpError
+from octolgp.io import load_scans
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+try:
+    list(load_scans(sys.argv[1]))
+    print("read")
+except OctolgpError as exc:
+    print("OctolgpError:", exc)
+grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+print("grown_kib", grown)
+"""
+
+
+def _probe(path: Path) -> tuple[str, int]:
+    """Read ``path`` in a fresh interpreter: its first output line and its RSS growth (KiB)."""
+    out = subprocess.run(
+        [sys.executable, "-c", RSS_PROBE, str(path)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=ROOT,
+        check=True,
+    ).stdout.splitlines()
+    return out[0], int(out[-1].split()[1])
+
+
+def _lzf_zeros(nbytes: int) -> bytes:
+    """An LZF stream of ``nbytes`` zero bytes at LZF's largest ratio (264 bytes per 3)."""
+    out = bytearray(b"\x00\x00")  # a literal run of one byte, 0
+    full, rest = divmod(nbytes - 1, 264)
+    out += b"\xe0\xff\x00" * full  # back-reference: length 7 + 255 + 2, distance 1
+    while rest:
+        k = min(rest, 8)
+        out += bytes([k - 1]) + bytes(k) if k < 3 else bytes([(k - 2) << 5, 0])
+        rest -= k
+    return bytes(out)
+
+
+def _pcd_head(points: int | str, data: str, fields: str = "x y z", sizes: str = "4 4 4") -> bytes:
+    n = len(fields.split())
+    counts = " ".join(["1"] * n)
+    if fields == "x y z h":
+        counts = "1 1 1 100"
+    return (
+        f"VERSION 0.7\nFIELDS {fields}\nSIZE {sizes}\nTYPE {' '.join(['F'] * n)}\n"
+        f"COUNT {counts}\nWIDTH {points}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {points}\nDATA {data}\n"
+    ).encode()
+
+
+@pytest.fixture
+def no_pcd_data(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make reading or decompressing any PCD data fail the test."""
+
+    def boom(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the data were read")
+
+    monkeypatch.setattr(pcd, "_lzf", boom)
+    for name in ("_read_ascii", "_read_binary"):
+        monkeypatch.setattr(PcdReader, name, boom)
+
+
+@pytest.mark.parametrize("data", ["ascii", "binary", "binary_compressed"])
+@pytest.mark.usefixtures("no_pcd_data")
+def test_a_pcd_header_claiming_1e12_points_is_refused_before_reading(
+    tmp_path: Path, data: str
+) -> None:
+    path = tmp_path / "huge.pcd"
+    tail = struct.pack("<II", 16, 2**32 - 1) + bytes(16) if data == "binary_compressed" else b""
+    path.write_bytes(_pcd_head(HUGE, data) + tail)
+    want = rf"huge\.pcd:9: POINTS claims {HUGE} points, more than .*MAX_SCAN_POINTS"
+    with pytest.raises(OctolgpError, match=want):
+        list(PcdReader(path))
+
+
+@pytest.mark.usefixtures("no_pcd_data")
+def test_pcd_lzf_sizes_are_checked_before_decompressing(tmp_path: Path) -> None:
+    path = tmp_path / "c.pcd"
+    # Within MAX_SCAN_POINTS, but 3,000,000 points x 412 bytes inflate past 1 GiB.
+    raw = 3_000_000 * 412
+    head = _pcd_head(3_000_000, "binary_compressed", "x y z h", "4 4 4 4")
+    path.write_bytes(head + struct.pack("<II", 1 << 24, raw) + bytes(64))
+    with pytest.raises(OctolgpError, match=rf"c\.pcd: byte \d+: .*{raw} bytes .*MAX_DECOMPRESSED"):
+        list(PcdReader(path))
+    # 10 bytes of LZF cannot inflate to 12,000.
+    path.write_bytes(
+        _pcd_head(1000, "binary_compressed") + struct.pack("<II", 10, 12000) + bytes(10)
+    )
+    with pytest.raises(OctolgpError, match=r"c\.pcd: byte \d+: corrupt LZF sizes.*88-fold"):
+        list(PcdReader(path))
+    # A block stated larger than the file.
+    path.write_bytes(_pcd_head(1000, "binary_compressed") + struct.pack("<II", 9000, 12000))
+    with pytest.raises(OctolgpError, match=r"truncated LZF block: its 9000 bytes are stated, 0"):
+        list(PcdReader(path))
+
+
+def test_a_pcd_lzf_bomb_is_refused_with_bounded_memory(tmp_path: Path) -> None:
+    """2.3 MB of LZF that inflate to 200 MB: one point more than MAX_SCAN_POINTS."""
+    points = limits.MAX_SCAN_POINTS + 1
+    body = _lzf_zeros(points * 12)
+    path = tmp_path / "bomb.pcd"
+    path.write_bytes(
+        _pcd_head(points, "binary_compressed") + struct.pack("<II", len(body), points * 12) + body
+    )
+    assert path.stat().st_size < 3 << 20
+    first, grown = _probe(path)
+    assert first.startswith("OctolgpError:"), first
+    assert "bomb.pcd:9: POINTS claims" in first
+    assert grown < 32 << 10, f"RSS grew by {grown} KiB"
+
+
+def _zip_npz(path: Path, members: dict[str, tuple[dict[str, object], bytes]]) -> None:
+    """An npz archive of members given as (npy header, data bytes), deflated."""
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        for name, (header, data) in members.items():
+            with zf.open(name + ".npy", "w", force_zip64=True) as m:
+                np.lib.format.write_array_header_1_0(m, header)
+                m.write(data)
+
+
+def _npy(arr: np.ndarray) -> tuple[dict[str, object], bytes]:
+    return np.lib.format.header_data_from_array_1_0(arr), arr.tobytes()
+
+
+@pytest.fixture
+def no_np_load(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Make loading any array of an npz file fail the test."""
+
+    def boom(*args: object, **kwargs: object) -> None:
+        raise AssertionError("an array was loaded")
+
+    monkeypatch.setattr(np, "load", boom)
+
+
+@pytest.mark.usefixtures("no_np_load")
+def test_an_npz_member_claiming_a_huge_shape_is_refused_before_loading(tmp_path: Path) -> None:
+    path = tmp_path / "huge.npz"
+    header = {"descr": "<f8", "fortran_order": False, "shape": (HUGE, 3)}
+    _zip_npz(
+        path,
+        {
+            "origins": _npy(np.zeros((1, 3))),
+            "points": (header, bytes(48)),
+            "offsets": _npy(np.array([0, 2])),
+        },
+    )
+    want = rf"huge\.npz.*array 'points' claims shape \({HUGE}, 3\).*MAX_DECOMPRESSED_BYTES"
+    with pytest.raises(OctolgpError, match=want):
+        npz.read_npz(path)
+    # A bare .npy (no archive) whose header claims as much is refused from its magic.
+    bare = tmp_path / "bare.npz"
+    with bare.open("wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, header)
+    with pytest.raises(OctolgpError, match=r"bare\.npz.*holds one array, not an npz archive"):
+        npz.read_npz(bare)
+
+
+def test_npz_scan_sizes_are_checked_before_the_points_are_read(tmp_path: Path) -> None:
+    """Offsets giving one scan more than MAX_SCAN_POINTS: refused before ``points`` is read."""
+    path = tmp_path / "big_scan.npz"
+    n = limits.MAX_SCAN_POINTS + 1
+    header = {"descr": "<f8", "fortran_order": False, "shape": (n, 2)}
+    _zip_npz(
+        path,
+        {
+            "offsets": _npy(np.array([0, n])),
+            "origins": _npy(np.zeros((1, 2))),
+            "points": (header, bytes(64)),  # truncated: reading it would fail differently
+        },
+    )
+    with pytest.raises(OctolgpError, match=rf"'offsets' gives scan 0 {n} points, more than"):
+        npz.read_npz(path)
+
+
+def test_an_npz_bomb_is_refused_with_bounded_memory(tmp_path: Path) -> None:
+    """1.08 GB of zeros deflated into a few MB, streamed so this test stays small."""
+    n = 45_000_000
+    path = tmp_path / "bomb.npz"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+        for name, arr in (("origins", np.zeros((1, 3))), ("offsets", np.array([0, n]))):
+            with zf.open(name + ".npy", "w") as m:
+                np.lib.format.write_array(m, arr)
+        with zf.open("points.npy", "w", force_zip64=True) as m:
+            header = {"descr": "<f8", "fortran_order": False, "shape": (n, 3)}
+            np.lib.format.write_array_header_1_0(m, header)
+            zeros = bytes(1 << 22)
+            for _ in range(n * 24 // len(zeros)):
+                m.write(zeros)
+            m.write(bytes(n * 24 % len(zeros)))
+    assert path.stat().st_size < 8 << 20
+    first, grown = _probe(path)
+    assert first.startswith("OctolgpError:"), first
+    assert "'points' claims shape (45000000, 3)" in first
+    assert grown < 32 << 10, f"RSS grew by {grown} KiB"
+
+
+CARMEN_LINE = "FLASER 3 1.0 2.0 3.0 0 0 0 0 0 0 1.0 host 1.0\n"
+
+
+def _carmen_gz(path: Path, long_line: int) -> None:
+    """A gzip CARMEN log: PARAM, a scan, a ``long_line``-character FLASER line, a scan."""
+    with gzip.open(path, "wb", compresslevel=6) as fh:
+        fh.write(("PARAM robot_front_laser_max 81.83\n" + CARMEN_LINE).encode())
+        fh.write(b"FLASER ")
+        zeros = b"0" * (1 << 20)
+        for _ in range(long_line // len(zeros)):
+            fh.write(zeros)
+        fh.write(b"0" * (long_line % len(zeros)) + b"\n" + CARMEN_LINE.encode())
+
+
+def test_an_enormous_carmen_line_is_refused_with_bounded_memory(tmp_path: Path) -> None:
+    """50 MB of zeros in one line, gzipped to about 50 kB."""
+    path = tmp_path / "bomb.log.gz"
+    _carmen_gz(path, 50 << 20)
+    assert path.stat().st_size < 200 << 10
+    first, grown = _probe(path)
+    assert first.startswith("OctolgpError:"), first
+    assert "bomb.log.gz:3: line longer than octolgp.io.limits.MAX_LINE_LENGTH" in first
+    assert grown < 24 << 10, f"RSS grew by {grown} KiB"
+
+
+def test_an_overlong_carmen_line_names_its_line_or_is_skipped(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(limits, "MAX_LINE_LENGTH", 64)
+    path = tmp_path / "long.log.gz"
+    _carmen_gz(path, 1000)
+    reader = CarmenReader(path)
+    assert len(next(reader)) == 3
+    with pytest.raises(OctolgpError, match=r"long\.log\.gz:3: line longer than .* \(64 char"):
+        next(reader)
+    skipping = CarmenReader(path, skip_bad=True)
+    assert len(list(skipping)) == 2  # the lines on both sides of it
+    assert skipping.bad_lines == [3]
+    # A line of exactly the limit is read.
+    exact = tmp_path / "exact.log"
+    exact.write_text(CARMEN_LINE.rstrip("\n").ljust(63) + "\n")
+    assert len(list(CarmenReader(exact, max_range=81.83))) == 1
+
+
+def _ply_head(fmt: str, before: str = "", vertices: int = 2) -> bytes:
+    return (
+        f"ply\nformat {fmt} 1.0\n{before}element vertex {vertices}\nproperty float x\n"
+        "property float y\nproperty float z\nend_header\n"
+    ).encode()
+
+
+def test_ply_element_counts_of_1e12_are_refused_from_the_header(tmp_path: Path) -> None:
+    path = tmp_path / "huge.ply"
+    path.write_bytes(_ply_head("binary_little_endian", vertices=HUGE) + bytes(24))
+    with pytest.raises(OctolgpError, match=rf"huge\.ply:3: element vertex claims {HUGE} points"):
+        list(PlyReader(path))
+    # A skipped element before the vertices: the count cannot fit in the file.
+    for fmt, per in (("binary_little_endian", 4), ("ascii", 1)):
+        path.write_bytes(_ply_head(fmt, f"element face {HUGE}\nproperty int a\n") + bytes(24))
+        want = rf"huge\.ply: truncated .*element 'face' claims {HUGE} instances \(at least {per}"
+        with pytest.raises(OctolgpError, match=want):
+            list(PlyReader(path))
+    # A list property: each instance holds at least its count byte.
+    path.write_bytes(
+        _ply_head("binary_little_endian", f"element face {HUGE}\nproperty list uchar int v\n")
+    )
+    with pytest.raises(OctolgpError, match=r"'face' claims \d+ instances \(at least 1 bytes"):
+        list(PlyReader(path))
+
+
+def test_text_scans_are_capped_as_they_are_read(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Compressed text has no header to check: the points and lines are counted as read."""
+    monkeypatch.setattr(limits, "MAX_SCAN_POINTS", 50)
+    rows = "".join(f"{i} 1 2\n" for i in range(80))
+    dat = tmp_path / "s.dat.gz"
+    dat.write_bytes(gzip.compress(rows.encode()))
+    with pytest.raises(OctolgpError, match=r"s\.dat\.gz:\d+: the scan holds 80 points, more than"):
+        list(ScanDatReader(dat))
+    tdk = tmp_path / "scan000.3d"
+    tdk.write_text(rows)
+    (tmp_path / "scan000.pose").write_text("0 0 0\n0 0 0\n")
+    with pytest.raises(OctolgpError, match=r"scan000\.3d:80: holds 80 points, more than"):
+        list(ThreeDTKReader(tdk, pose="pose"))
+    kitti = ROOT / "tests/data/kitti/sequences/00"
+    with pytest.raises(OctolgpError, match=r"000000\.bin: the file claims \d+ points, more than"):
+        list(load_scans(kitti))
+    monkeypatch.setattr(limits, "MAX_SCAN_POINTS", 1 << 24)
+    monkeypatch.setattr(limits, "MAX_LINE_LENGTH", 32)
+    dat.write_bytes(gzip.compress(b"1 2 3\n" + b"4" * 100 + b" 5 6\n7 8 9\n"))
+    with pytest.raises(OctolgpError, match=r"s\.dat\.gz:2: line longer than"):
+        list(ScanDatReader(dat))
+    skipped = ScanDatReader(dat, skip_bad=True)
+    assert len(next(skipped)) == 2
+    assert skipped.bad_lines == [(dat, 2)]
+    tdk.write_text("1 2 3\n" + "4" * 100 + " 5 6\n7 8 9\n")
+    with pytest.raises(OctolgpError, match=r"scan000\.3d:2: line longer than"):
+        list(ThreeDTKReader(tdk, pose="pose"))

@@ -34,6 +34,10 @@ skipped and counted (the reader's ``skipped``) instead of raising an error that 
 file and line. Each skip is also logged at INFO (file, line or message, reason) on the
 reader's ``octolgp.io.*`` logger; a Rerun recording that was not closed or is cut off is
 logged at WARNING.
+
+What one file may make a reader allocate is bounded by the stated limits of
+:mod:`octolgp.io.limits` (points per scan, bytes once decompressed, line length), checked
+from the file's headers before its data are read or decompressed.
 """
 
 from __future__ import annotations

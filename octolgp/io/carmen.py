@@ -21,8 +21,10 @@ in at least 5 beams (81.83 in the Intel log, 81.91 in FR079), else there is none
 :attr:`Scan.max_range` is set :data:`NO_RETURN_MARGIN` below it so that round-off
 never turns a no-return into a hit.
 
-The file is read line by line; only the first 200 scans are held while the
-no-return value is detected.
+The file is read line by line, each line at most
+:data:`~octolgp.io.limits.MAX_LINE_LENGTH` characters (a longer one is malformed: raised
+naming the file and line, or skipped with ``skip_bad``, never held whole); only the first
+200 scans are held while the no-return value is detected.
 """
 
 from __future__ import annotations
@@ -41,7 +43,9 @@ from typing import IO
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io import limits
 from octolgp.io.base import ScanStream
+from octolgp.io.limits import LineTooLongError, read_line, skip_line_rest
 from octolgp.scan import FloatArray, Scan
 
 __all__ = ["NO_RETURN_MARGIN", "CarmenReader", "beam_angles", "looks_like_carmen", "read_carmen"]
@@ -165,10 +169,15 @@ def looks_like_carmen(path: str | Path) -> bool:
     """
     try:
         with _open_text(Path(path)) as fh:
-            for _, line in zip(range(_SNIFF_LINES), fh, strict=False):
-                tokens = line.split()
+            for _ in range(_SNIFF_LINES):
+                line = fh.readline(limits.MAX_LINE_LENGTH + 1)  # an overlong line: its head
+                if not line:
+                    break
+                tokens = line.split(maxsplit=1)
                 if tokens and not tokens[0].startswith("#"):
                     return _MESSAGE_NAME.fullmatch(tokens[0]) is not None
+                if not line.endswith("\n"):
+                    skip_line_rest(fh)
     except _READ_ERRORS:
         return False
     return True
@@ -223,15 +232,32 @@ class CarmenReader(ScanStream):
         self._scans = self._generate()
 
     def _lines(self) -> Generator[tuple[int, str], None, None]:
-        """Yield ``(line_number, line)``; a read error becomes :class:`OctolgpError`."""
+        """Yield ``(line_number, line)``; a read error becomes :class:`OctolgpError`.
+
+        A line longer than :data:`~octolgp.io.limits.MAX_LINE_LENGTH` raises naming the file
+        and line, or with ``skip_bad`` is read to its end in bounded parts and skipped.
+        """
         line_no = 0
         try:
             with _open_text(self.path) as fh:
-                for line in fh:
+                while True:
                     line_no += 1
+                    try:
+                        line = read_line(fh)
+                    except LineTooLongError as exc:
+                        if not self.skip_bad:
+                            raise OctolgpError(f"CARMEN log {self.path}:{line_no}: {exc}") from None
+                        self.skipped += 1
+                        self.bad_lines.append(line_no)
+                        logger.info("CARMEN log %s:%d: skipped: %s", self.path, line_no, exc)
+                        if not exc.ended:
+                            skip_line_rest(fh)
+                        continue
+                    if not line:
+                        return
                     yield line_no, line
         except _READ_ERRORS as exc:
-            where = f"{self.path}:{line_no + 1}"
+            where = f"{self.path}:{line_no}"
             raise OctolgpError(f"CARMEN log {where}: unreadable: {exc}") from None
 
     def _to_scan(self, record: _Record) -> Scan:

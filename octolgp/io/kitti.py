@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io import limits
 from octolgp.io.pointcloud import READ_ERRORS, CloudReader
 from octolgp.scan import FloatArray, Scan
 
@@ -318,8 +319,13 @@ class KittiReader(CloudReader):
             yield scan
 
     def _read_scan(self, path: Path, T: FloatArray) -> Scan:
-        """Read one ``.bin`` and move it into the world by ``T`` (4 x 4)."""
+        """Read one ``.bin`` and move it into the world by ``T`` (4 x 4).
+
+        A file of more than :data:`~octolgp.io.limits.MAX_SCAN_POINTS` records is refused
+        from its size, before it is read.
+        """
         try:
+            limits.check_points(path.stat().st_size // RECORD.itemsize, f"KITTI {path}: the file")
             raw = path.read_bytes()
         except READ_ERRORS as exc:
             raise OctolgpError(f"KITTI {path}: unreadable: {exc}") from None

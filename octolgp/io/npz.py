@@ -14,24 +14,33 @@ array           shape       dtype   meaning
 
 The whole file is read and validated when :func:`read_npz` is called, so a corrupt
 file raises at the call; the :class:`~octolgp.scan.Scan` objects are then built
-lazily, one per ``next``.
+lazily, one per ``next``. Before any array is read, the ``.npy`` header of each member
+above is read (a few hundred bytes inflated) and the shapes it claims are checked: together
+at most :data:`~octolgp.io.limits.MAX_DECOMPRESSED_BYTES`, so a small archive of highly
+compressed members (a decompression bomb) is refused at once. No scan may hold more than
+:data:`~octolgp.io.limits.MAX_SCAN_POINTS` points.
 """
 
 from __future__ import annotations
 
+import math
+import zipfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
+from numpy.lib import format as npy_format
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io import limits
 from octolgp.scan import FloatArray, Scan
 
 __all__ = ["read_npz", "read_truth", "write_npz"]
 
 _REQUIRED = ("origins", "points", "offsets")
 _OPTIONAL = ("max_range", "stamps", "truth_points", "truth_labels")
+_NPY_MAGIC = b"\x93NUMPY"
 
 
 def _fail(path: Path, name: str, message: str) -> OctolgpError:
@@ -39,10 +48,81 @@ def _fail(path: Path, name: str, message: str) -> OctolgpError:
     return OctolgpError(f"npz scan log {str(path)!r}: array {name!r} {message}")
 
 
+def _claimed_sizes(path: Path) -> dict[str, tuple[tuple[int, ...], int]]:
+    """The shape and bytes that each known member's ``.npy`` header claims, nothing else read.
+
+    Raises
+    ------
+    OctolgpError
+        If the file is one bare ``.npy`` array, or the archive or a member header is
+        unreadable.
+    """
+    try:
+        with open(path, "rb") as fh:
+            magic = fh.read(len(_NPY_MAGIC))
+        if magic == _NPY_MAGIC:
+            raise ValueError("it holds one array, not an npz archive")
+        claims: dict[str, tuple[tuple[int, ...], int]] = {}
+        with zipfile.ZipFile(path) as zf:
+            for info in zf.infolist():
+                name = info.filename.removesuffix(".npy")
+                if name not in _REQUIRED + _OPTIONAL:
+                    continue
+                with zf.open(info) as member:  # inflates only what the header needs
+                    version = npy_format.read_magic(member)
+                    if version == (1, 0):
+                        shape, _, dtype = npy_format.read_array_header_1_0(member)
+                    else:  # 2.0 and 3.0 share the layout (3.0 decodes as UTF-8)
+                        shape, _, dtype = npy_format.read_array_header_2_0(member)
+                nbytes = math.prod(int(n) for n in shape) * dtype.itemsize
+                old = claims.get(name, ((), 0))[1]
+                claims[name] = (tuple(int(n) for n in shape), old + nbytes)
+        return claims
+    except Exception as exc:
+        # zipfile, zlib, bz2, lzma and numpy's .npy header parser (ast, tokenize) raise a
+        # dozen types on a damaged archive; every one of them means the file is unreadable
+        msg = f"npz scan log {str(path)!r} is not a readable npz file: {exc}"
+        raise OctolgpError(msg) from None
+
+
+def _check_sizes(path: Path) -> None:
+    """Refuse an archive whose arrays claim more than the size limits, before reading them."""
+    claims = _claimed_sizes(path)
+    total = sum(nbytes for _, nbytes in claims.values())
+    if total > limits.MAX_DECOMPRESSED_BYTES:
+        name, (shape, nbytes) = max(claims.items(), key=lambda kv: kv[1][1])
+        raise _fail(
+            path,
+            name,
+            f"claims shape {shape} ({nbytes} bytes); the arrays together claim {total} bytes, "
+            f"more than octolgp.io.limits.MAX_DECOMPRESSED_BYTES "
+            f"({limits.MAX_DECOMPRESSED_BYTES})",
+        )
+
+
+def _check_scan_sizes(path: Path, offsets: NDArray[np.generic]) -> None:
+    """Refuse ``offsets`` that give a scan more than :data:`~octolgp.io.limits.MAX_SCAN_POINTS`.
+
+    Offsets that are not a 1-D integer array are left to :func:`_validate`.
+    """
+    if offsets.ndim != 1 or offsets.dtype.kind not in "iu" or len(offsets) < 2:
+        return
+    counts = np.diff(offsets.astype(np.int64))
+    big = int(np.argmax(counts))
+    if counts[big] > limits.MAX_SCAN_POINTS:
+        raise _fail(
+            path,
+            "offsets",
+            f"gives scan {big} {int(counts[big])} points, more than "
+            f"octolgp.io.limits.MAX_SCAN_POINTS ({limits.MAX_SCAN_POINTS})",
+        )
+
+
 def _load_arrays(path: Path) -> dict[str, NDArray[np.generic]]:
-    """Read every known array of an npz file into memory (no pickles)."""
+    """Read every known array of an npz file into memory (no pickles), sizes checked first."""
     if not path.is_file():
         raise MapFileNotFound(f"npz scan log {str(path)!r} does not exist")
+    _check_sizes(path)
     try:
         # our own handle: np.load(path) leaks its file when the content is not an npz
         with open(path, "rb") as fh:
@@ -50,7 +130,16 @@ def _load_arrays(path: Path) -> dict[str, NDArray[np.generic]]:
             if not isinstance(npz, np.lib.npyio.NpzFile):  # a bare .npy array
                 raise ValueError("it holds one array, not an npz archive")
             with npz:
-                return {k: np.asarray(npz[k]) for k in npz.files if k in _REQUIRED + _OPTIONAL}
+                arrays: dict[str, NDArray[np.generic]] = {}
+                if "offsets" in npz.files:  # small: the scan sizes, before the points are read
+                    arrays["offsets"] = np.asarray(npz["offsets"])
+                    _check_scan_sizes(path, arrays["offsets"])
+                for k in npz.files:
+                    if k in _REQUIRED + _OPTIONAL and k not in arrays:
+                        arrays[k] = np.asarray(npz[k])
+                return arrays
+    except OctolgpError:
+        raise
     except Exception as exc:
         # zipfile, zlib and numpy's .npy header parser (ast, tokenize) raise a dozen types
         # on a damaged archive; every one of them means the file is unreadable
@@ -100,6 +189,7 @@ def _validate(
     empty = np.flatnonzero(np.diff(offsets) <= 0)
     if empty.size:
         raise _fail(path, "offsets", f"must increase strictly: scan {int(empty[0])} is empty")
+    _check_scan_sizes(path, offsets)
     per_scan = np.full(S, np.nan)
     max_range = _float_array(path, arrays, "max_range", (S,)) if "max_range" in arrays else per_scan
     stamps = _float_array(path, arrays, "stamps", (S,)) if "stamps" in arrays else per_scan

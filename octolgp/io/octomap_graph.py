@@ -41,6 +41,8 @@ import numpy as np
 
 from octolgp.errors import OctolgpError
 from octolgp.geometry.rotations import matrix_to_quaternion, quaternion_to_matrix, rpy_to_matrix
+from octolgp.io import limits
+from octolgp.io.limits import LineTooLongError, read_line, skip_line_rest
 from octolgp.io.pointcloud import (
     CHUNK_LINES,
     CHUNK_POINTS,
@@ -183,6 +185,10 @@ class ScanDatReader(CloudReader):
                         self, pending, self.path, start, ncols=3, xyz=[0, 1, 2], comments="#"
                     )
                 )
+                held = sum(len(b) for b in blocks)
+                limits.check_points(
+                    held, f"{self.kind} {self.path}:{line_no}: the scan", claimed=False
+                )
             pending.clear()
 
         def finish() -> Scan | None:
@@ -197,8 +203,18 @@ class ScanDatReader(CloudReader):
 
         try:
             with open_text(self.path) as fh:
-                for line in fh:
+                while True:
                     line_no += 1
+                    try:
+                        line = read_line(fh)
+                    except LineTooLongError as exc:
+                        flush()  # the pending lines run up to the one before
+                        self.bad_line(self.path, line_no, str(exc))  # raises without skip_bad
+                        if not exc.ended:
+                            skip_line_rest(fh)
+                        continue
+                    if not line:
+                        break
                     if line.startswith("NODE"):
                         flush()
                         if where or blocks:  # a NODE scan, or plain points before the first
@@ -215,7 +231,7 @@ class ScanDatReader(CloudReader):
                     if len(pending) >= CHUNK_LINES:
                         flush()
         except READ_ERRORS as exc:
-            where = f"{self.path}:{line_no + 1}"
+            where = f"{self.path}:{line_no}"
             raise OctolgpError(f"{self.kind} {where}: unreadable: {exc}") from None
         scan = finish()
         if scan is not None:
@@ -273,6 +289,10 @@ class GraphReader(CloudReader):
         if len(raw) < 4:
             raise self._fail(fh, f"node {index}: truncated point count")
         (n,) = _U32.unpack(raw)
+        try:
+            limits.check_points(n, f"node {index}")
+        except OctolgpError as exc:
+            raise self._fail(fh, str(exc)) from None
         if fh.tell() + 28 * n + _POSE.size + 4 > size:
             raise self._fail(fh, f"node {index}: {n} points do not fit in the file (truncated)")
         blocks: list[FloatArray] = []

@@ -12,6 +12,12 @@ header of ``VERSION``, ``FIELDS``, ``SIZE``, ``TYPE``, ``COUNT``, ``WIDTH``, ``H
   ``y``, ...), padding fields named ``_`` left out. It is decompressed here in pure Python
   (:func:`lzf_decompress`), the whole block at once: about 0.5 s per 10 MB.
 
+Size limits (:mod:`octolgp.io.limits`), checked from the header before the data are read:
+``WIDTH * HEIGHT`` at most :data:`~octolgp.io.limits.MAX_SCAN_POINTS`; binary data no longer
+than what follows the header; a compressed block no larger than what follows, inflating to
+at most :data:`~octolgp.io.limits.MAX_DECOMPRESSED_BYTES` and at most
+:data:`~octolgp.io.limits.LZF_MAX_RATIO` times its size.
+
 Only the fields ``x``, ``y`` and ``z`` are read (any ``TYPE``/``SIZE``, ``COUNT`` 1); the others
 are skipped. The points are in the sensor frame; ``VIEWPOINT tx ty tz qw qx qy qz`` (default
 ``0 0 0 1 0 0 0``) is the sensor pose in the world frame, so each point becomes
@@ -37,6 +43,7 @@ import numpy as np
 
 from octolgp.errors import OctolgpError
 from octolgp.geometry.rotations import quaternion_to_matrix
+from octolgp.io import limits
 from octolgp.io.pointcloud import (
     CHUNK_POINTS,
     READ_ERRORS,
@@ -132,28 +139,36 @@ def _ints(tokens: list[str], key: str, lo: int) -> tuple[int, ...]:
 
 def _parse_header(fh: IO[bytes]) -> PcdHeader:
     """Parse a header from the start of ``fh``; errors name the line, without the file."""
-    entries, data, line_no = _header_entries(fh)
+    entries, data, line_no, where = _header_entries(fh)
     try:
         for key in ("FIELDS", "SIZE", "TYPE", "WIDTH"):
             if key not in entries:
                 raise OctolgpError(f"no {key} line")
         fields, sizes, types, counts = _field_layout(entries)
-        width, height = _cloud_size(entries)
-        viewpoint = _viewpoint(entries)
     except OctolgpError as exc:
         raise OctolgpError(f"{line_no}: {exc}") from None
+    size_line = max(where.get(k, 0) for k in ("WIDTH", "HEIGHT", "POINTS"))
+    try:
+        width, height = _cloud_size(entries)
+    except OctolgpError as exc:
+        raise OctolgpError(f"{size_line}: {exc}") from None
+    try:
+        viewpoint = _viewpoint(entries)
+    except OctolgpError as exc:
+        raise OctolgpError(f"{where.get('VIEWPOINT', line_no)}: {exc}") from None
     return PcdHeader(
         fields, sizes, types, counts, width, height, viewpoint, data, fh.tell(), line_no
     )
 
 
-def _header_entries(fh: IO[bytes]) -> tuple[dict[str, list[str]], str, int]:
-    """Read the header lines up to ``DATA``: each keyword's values, the data kind, its line.
+def _header_entries(fh: IO[bytes]) -> tuple[dict[str, list[str]], str, int, dict[str, int]]:
+    """Read the header lines up to ``DATA``: values, data kind, its line, each keyword's line.
 
     Comments and blank lines are skipped; an unknown or repeated keyword, binary bytes,
     an overlong line or a header without a valid ``DATA`` line raise with the line number.
     """
     entries: dict[str, list[str]] = {}
+    where: dict[str, int] = {}
     line_no = 0
     while True:
         raw = fh.readline(_MAX_LINE)
@@ -177,10 +192,11 @@ def _header_entries(fh: IO[bytes]) -> tuple[dict[str, list[str]], str, int]:
         if key in entries:
             raise OctolgpError(f"{line_no}: repeated {key}")
         entries[key] = tokens[1:]
+        where[key] = line_no
     data = tokens[1].lower() if len(tokens) == 2 else ""
     if data not in _DATA_KINDS:
         raise OctolgpError(f"{line_no}: DATA must be one of {_DATA_KINDS}, got {text.strip()!r}")
-    return entries, data, line_no
+    return entries, data, line_no, where
 
 
 def _field_layout(
@@ -208,11 +224,18 @@ def _field_layout(
 
 
 def _cloud_size(entries: dict[str, list[str]]) -> tuple[int, int]:
-    """``WIDTH`` and ``HEIGHT`` (default 1), which ``POINTS``, when given, must multiply to."""
+    """``WIDTH`` and ``HEIGHT`` (default 1), which ``POINTS``, when given, must multiply to.
+
+    Neither may claim more than :data:`~octolgp.io.limits.MAX_SCAN_POINTS` points.
+    """
     (width,) = _ints(entries["WIDTH"], "WIDTH", 0)
     (height,) = _ints(entries.get("HEIGHT", ["1"]), "HEIGHT", 1)
-    if "POINTS" in entries and _ints(entries["POINTS"], "POINTS", 0) != (width * height,):
-        raise OctolgpError(f"POINTS {entries['POINTS']} != WIDTH * HEIGHT = {width * height}")
+    if "POINTS" in entries:
+        (points,) = _ints(entries["POINTS"], "POINTS", 0)
+        limits.check_points(points, "POINTS")
+        if points != width * height:
+            raise OctolgpError(f"POINTS {points} != WIDTH * HEIGHT = {width * height}")
+    limits.check_points(width * height, f"WIDTH * HEIGHT = {width} * {height}")
     return width, height
 
 
@@ -269,12 +292,20 @@ def lzf_decompress(data: bytes, size: int) -> bytes:
         wrong output length.
     """
     try:
-        return _lzf(data, size)
+        return bytes(_lzf(data, size))
     except _LzfError as exc:
         raise OctolgpError(f"corrupt LZF data: {exc}") from None
 
 
-def _lzf(data: bytes, size: int) -> bytes:
+def _remaining(fh: IO[bytes]) -> int:
+    """Bytes from the position of ``fh`` to the end of its file."""
+    here = fh.tell()
+    end = fh.seek(0, io.SEEK_END)
+    fh.seek(here)
+    return end - here
+
+
+def _lzf(data: bytes, size: int) -> bytearray:
     out = bytearray()
     i, n = 0, len(data)
     while i < n:
@@ -310,7 +341,7 @@ def _lzf(data: bytes, size: int) -> bytes:
             raise _LzfError(f"expands past the stated {size} bytes")
     if len(out) != size:
         raise _LzfError(f"expands to {len(out)} bytes, not the stated {size}")
-    return bytes(out)
+    return out
 
 
 class PcdReader(CloudReader):
@@ -436,6 +467,13 @@ class PcdReader(CloudReader):
         self, fh: IO[bytes], path: Path, header: PcdHeader, organised: bool
     ) -> list[FloatArray]:
         dtype = header.dtype()
+        need = header.points * dtype.itemsize
+        follow = _remaining(fh)
+        if need > follow:
+            raise OctolgpError(
+                f"PCD {path}: byte {header.data_offset}: truncated binary data: {header.points} "
+                f"points need {need} bytes, {follow} follow the header"
+            )
         blocks: list[FloatArray] = []
         done = 0
         while done < header.points:
@@ -466,6 +504,21 @@ class PcdReader(CloudReader):
                 f"PCD {path}: byte {offset + 4}: uncompressed size {uncompressed} != "
                 f"{header.points} points x {dtype.itemsize} bytes"
             )
+        follow = _remaining(fh)
+        try:
+            limits.check_bytes(uncompressed, "the LZF block")
+        except OctolgpError as exc:
+            raise OctolgpError(f"PCD {path}: byte {offset + 4}: {exc}") from None
+        if compressed > follow:
+            raise OctolgpError(
+                f"PCD {path}: byte {offset}: truncated LZF block: its {compressed} bytes "
+                f"are stated, {follow} follow"
+            )
+        if uncompressed > limits.LZF_MAX_RATIO * compressed:
+            raise OctolgpError(
+                f"PCD {path}: byte {offset}: corrupt LZF sizes: {compressed} bytes cannot "
+                f"inflate to {uncompressed} (LZF inflates at most {limits.LZF_MAX_RATIO}-fold)"
+            )
         data = fh.read(compressed)
         if len(data) < compressed:
             raise OctolgpError(
@@ -478,7 +531,7 @@ class PcdReader(CloudReader):
             raise OctolgpError(f"PCD {path}: byte {offset + 8}: corrupt LZF data: {exc}") from None
         # The block holds each field for all points, one field after the other.
         n = header.points
-        cols: dict[str, FloatArray] = {}
+        xyz = np.empty((n, 3))
         pos = 0
         for name, t, s, c in zip(
             header.fields, header.types, header.sizes, header.counts, strict=True
@@ -488,9 +541,8 @@ class PcdReader(CloudReader):
             if name in ("x", "y", "z"):
                 values = np.frombuffer(raw, dtype="<" + _TYPES[t, s], count=n, offset=pos)
                 with np.errstate(invalid="ignore"):  # a signalling NaN; caught as NaN
-                    cols[name] = values.astype(np.float64)
+                    xyz[:, "xyz".index(name)] = values
             pos += s * c * n
-        xyz = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
         return [self._check_records(path, xyz, 0, organised)]
 
 

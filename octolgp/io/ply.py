@@ -14,6 +14,10 @@ Format (Paul Bourke / Greg Turk's PLY description): ``ply``, ``format ascii 1.0`
   argument; ``(0, 0, 0)``.
 - Every vertex must be finite: PLY has no organised-cloud convention, so a NaN or inf
   coordinate is a malformed point (raised, or skipped with ``skip_bad``).
+- Size limits, checked from the header before the data are read: the ``vertex`` count is at
+  most :data:`~octolgp.io.limits.MAX_SCAN_POINTS`, and the elements up to it must fit in the
+  bytes that follow the header (at least one byte per ASCII instance, one record's scalars
+  and list counts per binary instance).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from typing import IO
 import numpy as np
 
 from octolgp.errors import OctolgpError
+from octolgp.io import limits
 from octolgp.io.pointcloud import (
     CHUNK_POINTS,
     READ_ERRORS,
@@ -66,6 +71,13 @@ class PlyElement:
         """The packed record of one instance (scalar properties only)."""
         return np.dtype(
             [(f"p{i}", order + _TYPES[t]) for i, (_, t, _) in enumerate(self.properties)]
+        )
+
+    def min_record(self) -> int:
+        """Fewest bytes of one binary instance: its scalars and list counts (empty lists)."""
+        return sum(
+            np.dtype(_TYPES[t if count is None else count]).itemsize
+            for _, t, count in self.properties
         )
 
 
@@ -108,6 +120,11 @@ def _parse_header(fh: IO[bytes]) -> PlyHeader:
         elif key == "element":
             if len(tokens) != 3 or not tokens[2].isdigit():
                 raise OctolgpError(f"{line_no}: bad element line {' '.join(tokens)[:60]!r}")
+            if tokens[1] == "vertex":
+                try:
+                    limits.check_points(int(tokens[2]), "element vertex")
+                except OctolgpError as exc:
+                    raise OctolgpError(f"{line_no}: {exc}") from None
             elements.append((tokens[1], int(tokens[2]), []))
         elif key == "property":
             _add_property(elements, tokens, line_no)
@@ -202,12 +219,39 @@ def looks_like_ply(path: str | Path) -> bool:
         return False
 
 
+def _check_sizes(fh: IO[bytes], header: PlyHeader, path: Path) -> None:
+    """Refuse, before reading, elements up to ``vertex`` that cannot fit in the file.
+
+    Each ASCII instance takes at least one byte, each binary one at least
+    :meth:`PlyElement.min_record` bytes; the counts are checked against the bytes that
+    follow the header, so a header claiming 10¹² instances fails at once.
+    """
+    here = fh.tell()
+    follow = fh.seek(0, io.SEEK_END) - here
+    fh.seek(here)
+    need = 0
+    for element in header.elements:
+        per = 1 if header.format == "ascii" else max(element.min_record(), 1)
+        need += element.count * per
+        if need > follow:
+            kind = "" if header.format == "ascii" else "binary "
+            raise OctolgpError(
+                f"PLY {path}: truncated {kind}data: element {element.name!r} claims "
+                f"{element.count} instances (at least {per} bytes each), but the data hold "
+                f"{follow} bytes"
+            )
+        if element.name == "vertex":
+            return
+
+
 def _skip_binary(fh: IO[bytes], element: PlyElement, order: str, path: Path) -> None:
     """Skip a binary element's instances (record by record if it has list properties)."""
     if all(p[2] is None for p in element.properties):
         size = element.dtype(order).itemsize * element.count
-        if len(fh.read(size)) < size:
+        start = fh.tell()
+        if fh.seek(0, io.SEEK_END) - start < size:
             raise OctolgpError(f"PLY {path}: truncated in element {element.name!r}")
+        fh.seek(start + size)
         return
     for i in range(element.count):
         for _, t, count_type in element.properties:
@@ -281,6 +325,7 @@ class PlyReader(CloudReader):
         try:
             with open(path, "rb") as fh:
                 fh.seek(header.data_offset)
+                _check_sizes(fh, header, path)
                 if header.format == "ascii":
                     blocks = self._read_ascii(fh, path, header)
                 else:

@@ -307,7 +307,10 @@ class CloudReader(ScanStream):
         OctolgpError
             If there is no point (``path: where: no points``).
         """
-        points = np.concatenate(blocks) if blocks else np.empty((0, 3))
+        if len(blocks) == 1:
+            points = blocks[0]  # the scan copies it; no second copy here
+        else:
+            points = np.concatenate(blocks) if blocks else np.empty((0, 3))
         if not points.shape[0]:
             raise OctolgpError(f"{self.kind} {path}{where}: no points")
         if rotation is not None:

@@ -26,11 +26,14 @@ import re
 import warnings
 from collections.abc import Generator
 from pathlib import Path
+from typing import IO
 
 import numpy as np
 
 from octolgp.errors import MapFileNotFound, OctolgpError
+from octolgp.io import limits
 from octolgp.io.base import ScanStream
+from octolgp.io.limits import LineTooLongError, read_lines, skip_line_rest
 from octolgp.io.pointcloud import READ_ERRORS, open_text
 from octolgp.io.threedtk_pose import CM, LH_TO_RH, read_frames, read_pose
 from octolgp.scan import FloatArray, Scan
@@ -227,19 +230,49 @@ class ThreeDTKReader(ScanStream):
         return out
 
     def _read_points(self, path: Path) -> FloatArray:
-        """Read a point file in the scanner frame, centimetres, shape (n, 3)."""
+        """Read a point file in the scanner frame, centimetres, shape (n, 3).
+
+        Lines are at most :data:`~octolgp.io.limits.MAX_LINE_LENGTH` characters (a longer one
+        is malformed) and the file at most :data:`~octolgp.io.limits.MAX_SCAN_POINTS`
+        points, checked as it is read, so a small compressed file cannot inflate without
+        bound.
+        """
         blocks: list[FloatArray] = []
-        line_no = 0
+        line_no = total = 0
         try:
             with open_text(path) as fh:
-                while chunk := fh.readlines(_CHUNK_BYTES):
-                    if line_no == 0 and _LEGACY_HEADER.fullmatch(chunk[0]):
-                        chunk[0] = "\n"  # pre-2019 "360 x 225" header
-                    blocks += self._parse(chunk, path, line_no + 1)
-                    line_no += len(chunk)
+                while True:
+                    long_line: LineTooLongError | None = None
+                    try:
+                        chunk = read_lines(fh, _CHUNK_BYTES)
+                    except LineTooLongError as exc:
+                        chunk, long_line = exc.before, exc
+                    if not chunk and long_line is None:
+                        break
+                    if chunk:
+                        if line_no == 0 and _LEGACY_HEADER.fullmatch(chunk[0]):
+                            chunk[0] = "\n"  # pre-2019 "360 x 225" header
+                        new = self._parse(chunk, path, line_no + 1)
+                        blocks += new
+                        line_no += len(chunk)
+                        total += sum(len(b) for b in new)
+                        limits.check_points(total, f"3DTK scan {path}:{line_no}:", claimed=False)
+                    if long_line is not None:
+                        line_no += 1
+                        self._long_line(fh, path, line_no, long_line)
         except READ_ERRORS as exc:
             raise OctolgpError(f"3DTK scan {path}:{line_no + 1}: unreadable: {exc}") from None
         return np.concatenate(blocks) if blocks else np.empty((0, 3))
+
+    def _long_line(self, fh: IO[str], path: Path, line_no: int, exc: LineTooLongError) -> None:
+        """Raise at an overlong line, or skip the rest of it and count it with ``skip_bad``."""
+        if not self.skip_bad:
+            raise OctolgpError(f"3DTK scan {path}:{line_no}: {exc}")
+        self.skipped += 1
+        self.bad_lines.append((path, line_no))
+        logger.info("3DTK scan %s:%d: skipped: %s", path, line_no, exc)
+        if not exc.ended:
+            skip_line_rest(fh)
 
     def _generate(self) -> Generator[Scan, None, None]:
         """Read, filter and transform one scan at a time."""
