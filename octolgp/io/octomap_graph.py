@@ -214,6 +214,7 @@ class ScanDatReader(CloudReader):
                             skip_line_rest(fh)
                         continue
                     if not line:
+                        line_no -= 1  # the last line read
                         break
                     if line.startswith("NODE"):
                         flush()
