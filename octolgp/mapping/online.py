@@ -130,7 +130,12 @@ class OnlineMap(MapReads):
     from RAM after each scan once they are in the map file (a temporary spill file
     when ``path`` is ``None``) and loaded back when a scan touches them; reads load
     them without keeping them. The map does not depend on the budget. With a file,
-    every ``insert_scan`` is durable when it returns (one SQLite transaction).
+    every ``insert_scan`` is durable when it returns (one SQLite transaction), and
+    this map is the file's one writer until :meth:`close`
+    (:mod:`octolgp.persist.mapfile` says what the file survives).
+
+    Several threads may share a map: its calls take turns (one lock per map), and a
+    read sees the map between two calls. After :meth:`close` every call is refused.
 
     Examples
     --------
