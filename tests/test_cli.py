@@ -86,7 +86,16 @@ def test_run_then_query_reads_the_map(tmp_path: Path) -> None:
     # default: the continuous (interpolated) map, equal to the voxel value at its centre
     np.testing.assert_allclose(got[:10], prob[:10], rtol=0, atol=1e-5)
     assert got[10] == 0.5
-    argv_q = ["query", str(out), "--points", str(pts), "--out", str(probs), "--nearest"]
+    argv_q = [
+        "query",
+        str(out),
+        "--points",
+        str(pts),
+        "--out",
+        str(probs),
+        "--nearest",
+        "--overwrite",
+    ]
     assert main(argv_q) == 0
     got = np.load(probs)
     assert np.array_equal(got[:10], prob[:10])

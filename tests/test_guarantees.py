@@ -445,3 +445,33 @@ def test_a_map_file_with_a_null_config_is_refused_naming_the_file(
         with pytest.raises(OctolgpError, match=rf"{path.name}.* is corrupt: .*JSON object"):
             OnlineMap.open(path, read_only=read_only)
     assert path.read_bytes() == before
+
+
+def test_cli_outputs_refuse_existing_files_without_overwrite(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = tmp_path / "m.octolgp"
+    with OnlineMap(CONFIG, path=path) as m:
+        m.insert_scans(SCANS[:2])
+    pts = tmp_path / "pts.npy"
+    np.save(pts, PROBE)
+    sim, prob, pgm = tmp_path / "sim.npz", tmp_path / "p.npy", tmp_path / "map.pgm"
+    for p in (sim, prob, pgm.with_suffix(".yaml")):
+        p.write_bytes(b"precious")
+    commands = [
+        ["simulate", "paper2d", "--out", str(sim)],
+        ["query", str(path), "--points", str(pts), "--out", str(prob)],
+        ["export", str(path), "--out", str(pgm)],  # its sibling map.yaml exists
+    ]
+    for cmd in commands:
+        capsys.readouterr()
+        assert main(cmd) == 2
+        err = capsys.readouterr().err.strip()
+        assert "already exists" in err
+        assert len(err.splitlines()) == 1
+    for p in (sim, prob, pgm.with_suffix(".yaml")):
+        assert p.read_bytes() == b"precious"
+    assert not pgm.exists()
+    for cmd in commands:
+        assert main([*cmd, "--overwrite"]) == 0
+    np.testing.assert_array_equal(np.load(prob), reference(SCANS[:2]))

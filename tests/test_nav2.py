@@ -312,7 +312,7 @@ def test_cli_export_nav2_and_pcd(map2d: Path, map3d: Path, tmp_path: Path) -> No
         centres, prob = m.voxels()
     back = read_nav2_map(pgm.with_suffix(".yaml"))
     np.testing.assert_array_equal(back.states_at(centres), cell_states(prob))
-    argv = ["export", str(map2d), "--out", str(pgm), "--occupied-thresh", "0.8"]
+    argv = ["export", str(map2d), "--out", str(pgm), "--overwrite", "--occupied-thresh", "0.8"]
     assert main([*argv, "--free-thresh", "0.1"]) == 0
     back = read_nav2_map(pgm.with_suffix(".yaml"))
     strict = cell_states(prob, occupied_thresh=0.8, free_thresh=0.1)
@@ -326,7 +326,7 @@ def test_cli_export_nav2_and_pcd(map2d: Path, map3d: Path, tmp_path: Path) -> No
     np.testing.assert_array_equal(
         read_nav2_map(street.with_suffix(".yaml")).states_at(xy), expected
     )
-    assert main(["export", str(map3d), "--out", str(street), "--z", "-1.6"]) == 0
+    assert main(["export", str(map3d), "--out", str(street), "--z", "-1.6", "--overwrite"]) == 0
 
     pcd = tmp_path / "street.pcd"
     assert main(["export", str(map3d), "--out", str(pcd), "--threshold", "0.7"]) == 0

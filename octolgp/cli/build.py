@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from octolgp.cli.configs import check_outputs
 from octolgp.cli.scans import first_and_rest
 from octolgp.errors import OctolgpError
 
@@ -26,6 +27,7 @@ def cmd_simulate(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.suffix != ".npz":
         raise OctolgpError(f"--out must end in .npz, got {str(out)!r}")
+    check_outputs(args.overwrite, out)
     out.parent.mkdir(parents=True, exist_ok=True)
     save_scan_log(out, data.scans, data.truth_points, data.truth_labels)
     n = sum(len(s) for s in data.scans)

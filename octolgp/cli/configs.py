@@ -78,6 +78,19 @@ def resolve_config(
     return (dataclasses.replace(base, **changes) if changes else base).resolve()
 
 
+def check_outputs(overwrite: bool, *paths: Path) -> None:
+    """Refuse outputs that exist already unless ``--overwrite`` was given.
+
+    Raises
+    ------
+    OctolgpError
+        Naming the first existing path.
+    """
+    for p in paths:  # one iteration per file the command writes
+        if p.exists() and not overwrite:
+            raise OctolgpError(f"--out {str(p)!r} already exists (pass --overwrite to replace it)")
+
+
 def config_path(out: str | Path, folder: bool = False) -> Path:
     """Where the resolved config of ``--out`` goes.
 

@@ -163,6 +163,7 @@ def make_parser() -> argparse.ArgumentParser:
     sim.add_argument("scene", choices=["paper2d"], help="the paper's 2D simulation")
     sim.add_argument("--out", required=True, help="output .npz scan log")
     sim.add_argument("--seed", type=_nonnegative_int, default=0)
+    sim.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     sim.set_defaults(func=cmd_simulate)
 
     run = sub.add_parser("run", help="map a scan log online, scan by scan")
@@ -190,6 +191,7 @@ def make_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="the value of the voxel holding each point (default: interpolated, continuous)",
     )
+    query.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     query.set_defaults(func=cmd_query)
 
     export = sub.add_parser(
@@ -220,6 +222,7 @@ def make_parser() -> argparse.ArgumentParser:
     export.add_argument(
         "--free-thresh", type=_probability, default=0.25, help="PGM: free below this P"
     )
+    export.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     export.set_defaults(func=cmd_export)
 
     correct = sub.add_parser(

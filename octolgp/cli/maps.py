@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from octolgp.cli.configs import check_outputs
 from octolgp.errors import OctolgpError
 
 if TYPE_CHECKING:
@@ -27,9 +29,14 @@ def cmd_query(args: argparse.Namespace) -> int:
         pts = np.load(pts_path, allow_pickle=False)
     except (ValueError, OSError) as exc:
         raise OctolgpError(f"--points {str(pts_path)!r} is not a .npy array: {exc}") from None
+    out = Path(args.out)
+    check_outputs(args.overwrite, out)
     with OnlineMap.open(args.map, read_only=True) as m:
         prob = m.occupancy(pts, interpolate=not args.nearest)
-    np.save(args.out, prob)
+    tmp = out.with_name(f".{out.name}.tmp")
+    with tmp.open("wb") as fh:  # a temporary file, then a rename: never half a file
+        np.save(fh, prob)
+    os.replace(tmp, out)
     print(f"wrote {args.out}: P(occupied) at {prob.size} points")
     return 0
 
@@ -48,6 +55,8 @@ def cmd_export(args: argparse.Namespace) -> int:
     z_range = args.z_range
     if z_range is not None and out.suffix != ".pgm":
         raise OctolgpError("--z-range applies to a nav2 map (--out FILE.pgm) only")
+    siblings = [out.with_suffix(".yaml")] if out.suffix == ".pgm" else []
+    check_outputs(args.overwrite, out, *siblings)
     with OnlineMap.open(args.map, read_only=True) as m:
         if out.suffix in (".bt", ".ot"):
             nodes = m.export_octomap(out, threshold=args.threshold)
