@@ -19,6 +19,10 @@ from typing import Any
 
 from octolgp.errors import MapFileNotFound, OctolgpError
 
+MAX_RESOLUTION = 1000.0
+"""Largest voxel edge, metres: a kilometre voxel already spans the globe at tree depth 16,
+and larger ones overflow the derived integer sizes."""
+
 
 def _positive(owner: str, name: str, value: object, *, allow_zero: bool = False) -> None:
     """Raise unless ``value`` is a finite real number > 0 (or >= 0)."""
@@ -414,7 +418,7 @@ class MapConfig:
     dim : int
         2 or 3. Default 3.
     resolution : float
-        Voxel edge, metres. Default 0.1.
+        Voxel edge, metres, in (0, :data:`MAX_RESOLUTION`]. Default 0.1.
     hyperparameters : Hyperparameters or None
         ``None`` (default) learns them from the data; a value is used as given.
     memory_budget_mb : float or None
@@ -447,6 +451,11 @@ class MapConfig:
         if type(self.dim) is not int or self.dim not in (2, 3):
             raise OctolgpError(f"MapConfig.dim must be 2 or 3, got {self.dim!r}")
         _positive("MapConfig", "resolution", self.resolution)
+        if self.resolution > MAX_RESOLUTION:
+            raise OctolgpError(
+                f"MapConfig.resolution must be at most {MAX_RESOLUTION:g} m, got "
+                f"{self.resolution!r}"
+            )
         if self.memory_budget_mb is not None:
             _positive("MapConfig", "memory_budget_mb", self.memory_budget_mb)
         _integer("MapConfig", "tree_depth", self.tree_depth, 1, 16)

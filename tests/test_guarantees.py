@@ -475,3 +475,69 @@ def test_cli_outputs_refuse_existing_files_without_overwrite(
     for cmd in commands:
         assert main([*cmd, "--overwrite"]) == 0
     np.testing.assert_array_equal(np.load(prob), reference(SCANS[:2]))
+
+
+def npz_log(path: Path, scans: list[Scan]) -> Path:
+    offsets = np.cumsum([0] + [s.points.shape[0] for s in scans])
+    np.savez(
+        path,
+        origins=np.stack([s.origin for s in scans]),
+        points=np.concatenate([s.points for s in scans]),
+        offsets=offsets,
+    )
+    return path
+
+
+HP_TOML = (
+    "[hyperparameters]\nlength_scale = 0.4\nsignal_variance = 1.0\n"
+    "noise_variance = 0.05\nalpha = 6.0\nbeta = 0.0\n"
+)
+
+
+def test_cli_resume_refuses_another_log(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(HP_TOML)
+    log_a = npz_log(tmp_path / "a.npz", SCANS[:4])
+    log_b = npz_log(tmp_path / "b.npz", SCANS[2:6])
+    out = tmp_path / "m.octolgp"
+    common = ["--out", str(out), "--config", str(cfg), "--quiet"]
+    assert main(["run", str(log_a), *common, "--limit", "2"]) == 0
+    capsys.readouterr()
+    assert main(["run", str(log_b), *common, "--resume"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "scan 1 of SCANS is not scan 1" in err
+    assert len(err.splitlines()) == 1
+    with OnlineMap.open(out, read_only=True) as m:
+        assert m.n_scans == 2
+    assert main(["run", str(log_a), *common, "--resume"]) == 0
+    with OnlineMap.open(out, read_only=True) as m:
+        assert m.n_scans == 4
+        np.testing.assert_array_equal(values(m), reference(SCANS[:4]))
+
+
+def test_cli_names_the_scan_it_refuses(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(HP_TOML)
+    far = Scan(origin=[0.0, 0.0], points=[[5000.0, 0.0], [1.0, 1.0]])
+    log = npz_log(tmp_path / "bad.npz", [SCANS[0], far, SCANS[1]])
+    out = tmp_path / "m.octolgp"
+    capsys.readouterr()
+    assert main(["run", str(log), "--out", str(out), "--config", str(cfg), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "scan 2:" in err
+    assert "outside the addressable range" in err
+    assert len(err.splitlines()) == 1
+
+
+def test_an_absurd_resolution_is_refused_naming_the_field(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(OctolgpError, match=r"MapConfig.resolution must be at most"):
+        MapConfig(resolution=1e308)
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("resolution = 1e308\n")
+    capsys.readouterr()
+    assert main(["dump-config", "--config", str(cfg)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "resolution" in err
+    assert len(err.splitlines()) == 1

@@ -88,6 +88,38 @@ def _reopen(out: Path, config: Any, config_file: Path, given: str | None) -> Any
     return m
 
 
+def _after_journal(m: Any, scans: Iterator[Any], out: Path) -> Iterator[Any]:
+    """The scans after those ``m`` journaled, once the log is checked to begin with them.
+
+    Raises
+    ------
+    OctolgpError
+        If the map keeps no journal, or the log's first scans are not the journaled ones.
+    """
+    import numpy as np
+
+    scans = iter(scans)
+    n = 0
+    for n, mine in enumerate(m.scans(), start=1):  # one iteration per journaled scan
+        theirs = next(scans, None)
+        if theirs is None or not (
+            np.array_equal(theirs.origin, mine.origin)
+            and np.array_equal(theirs.points, mine.points)
+        ):
+            m.close()
+            raise OctolgpError(
+                f"--resume: scan {n} of SCANS is not scan {n} of {str(out)!r}: the map was "
+                "built from another log (or a log filtered another way)"
+            )
+    if n != m.n_scans:
+        m.close()
+        raise OctolgpError(
+            f"--resume: {str(out)!r} keeps no journal of its {m.n_scans} scans (saved from "
+            "memory), so it cannot be checked against SCANS"
+        )
+    return scans
+
+
 def _insert_all(m: Any, scans: Iterator[Any], quiet: bool) -> int:
     """Insert the scans one by one (a progress bar in scans/s), then flush the bootstrap.
 
@@ -98,7 +130,10 @@ def _insert_all(m: Any, scans: Iterator[Any], quiet: bool) -> int:
     bar = tqdm(scans, unit="scan", disable=quiet or None, dynamic_ncols=True)
     repaired = 0
     for scan in bar:  # one iteration per scan
-        update = m.insert_scan(scan)
+        try:
+            update = m.insert_scan(scan)
+        except OctolgpError as exc:
+            raise OctolgpError(f"SCANS scan {m.n_scans + 1}: {exc}") from None
         repaired += update.repaired
         bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
     last = m.flush()
@@ -111,6 +146,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
 
     from octolgp.cli.configs import config_path, resolve_config, write_config
     from octolgp.mapping.online import OnlineMap
+    from octolgp.persist.mapfile import check_output
 
     out = Path(args.out)
     resume = getattr(args, "resume", False) and out.exists()
@@ -130,9 +166,10 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
     if resume:
         m = _reopen(out, config, config_file, args.config)
         m.sink = m.sink if sink is None else sink
-        scans = itertools.islice(scans, m.n_scans, None)  # skip what the map already holds
+        scans = _after_journal(m, scans, out)
         print(f"resuming {out} after {m.n_scans} scans")
     else:
+        check_output(out, overwrite=True)  # never a map another writer holds
         for suffix in ("", "-wal", "-shm"):
             Path(str(out) + suffix).unlink(missing_ok=True)
         out.parent.mkdir(parents=True, exist_ok=True)
