@@ -11,6 +11,7 @@ import dataclasses
 import json
 import math
 import os
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,14 +25,44 @@ MAX_RESOLUTION = 1000.0
 and larger ones overflow the derived integer sizes."""
 
 
-def _positive(owner: str, name: str, value: object, *, allow_zero: bool = False) -> None:
-    """Raise unless ``value`` is a finite real number > 0 (or >= 0)."""
+MAX_MEMORY_BUDGET_MB = 1e12
+"""Largest ``memory_budget_mb``: the budget in bytes must fit a 64-bit integer."""
+
+MIN_SPACING = 1e-6
+"""Smallest node or lattice spacing, as a fraction of the length scale, and smallest
+coarse box, metres: finer ones make node counts that overflow an integer."""
+
+LENGTH_SCALE_RANGE = (1e-6, 1e6)
+"""The length scales a map accepts, metres (learning keeps to [0.01, 100])."""
+
+MAX_VARIANCE = 1e12
+"""Largest signal or noise variance: ``α² σ²`` in PLSC must stay finite."""
+
+MAX_PLSC = 1e6
+"""Largest ``|α|`` and ``|β|`` of PLSC (learning keeps to [0.001, 1000] and [-100, 100])."""
+
+
+def _positive(
+    owner: str,
+    name: str,
+    value: object,
+    *,
+    allow_zero: bool = False,
+    low: float | None = None,
+    high: float | None = None,
+    unit: str = "",
+) -> None:
+    """Raise unless ``value`` is a finite real number > 0 (or >= 0), in [low, high] if given."""
     ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
     if ok:
         ok = value >= 0 if allow_zero else value > 0  # type: ignore[operator]
     if not ok:
         bound = ">= 0" if allow_zero else "> 0"
         raise OctolgpError(f"{owner}.{name} must be a finite number {bound}, got {value!r}")
+    if low is not None and value < low:  # type: ignore[operator]
+        raise OctolgpError(f"{owner}.{name} must be at least {low:g}{unit}, got {value!r}")
+    if high is not None and value > high:  # type: ignore[operator]
+        raise OctolgpError(f"{owner}.{name} must be at most {high:g}{unit}, got {value!r}")
 
 
 def _integer(owner: str, name: str, value: object, lo: int, hi: int | None = None) -> None:
@@ -59,13 +90,16 @@ class Hyperparameters:
     Parameters
     ----------
     length_scale : float
-        Matérn ν=3/2 length scale ``l``, metres.
+        Matérn ν=3/2 length scale ``l``, metres, in [1e-6, 1e6]
+        (:data:`LENGTH_SCALE_RANGE`).
     signal_variance : float
-        Signal variance ``σf²`` (the paper reports ``σf``, its square root).
+        Signal variance ``σf²`` (the paper reports ``σf``, its square root), in
+        (0, 1e12] (:data:`MAX_VARIANCE`).
     noise_variance : float
-        Observation noise variance ``σn²`` (the paper reports ``σn``).
+        Observation noise variance ``σn²`` (the paper reports ``σn``), in (0, 1e12].
     alpha, beta : float
-        PLSC scale and offset: ``p(occupied) = Φ((α μ + β) / sqrt(1 + α² σ²))``.
+        PLSC scale and offset: ``p(occupied) = Φ((α μ + β) / sqrt(1 + α² σ²))``, each in
+        [-1e6, 1e6] (:data:`MAX_PLSC`), so that ``α² σ²`` stays finite.
     """
 
     length_scale: float = 1.0
@@ -75,13 +109,21 @@ class Hyperparameters:
     beta: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("length_scale", "signal_variance", "noise_variance"):
-            _positive("Hyperparameters", name, getattr(self, name))
+        low, high = LENGTH_SCALE_RANGE
+        _positive(
+            "Hyperparameters", "length_scale", self.length_scale, low=low, high=high, unit=" m"
+        )
+        for name in ("signal_variance", "noise_variance"):
+            _positive("Hyperparameters", name, getattr(self, name), high=MAX_VARIANCE)
         for name in ("alpha", "beta"):
             value = getattr(self, name)
             ok = isinstance(value, int | float) and not isinstance(value, bool)
             if not ok or not math.isfinite(value):
                 raise OctolgpError(f"Hyperparameters.{name} must be a finite number, got {value!r}")
+            if abs(value) > MAX_PLSC:
+                raise OctolgpError(
+                    f"Hyperparameters.{name} must be in [-{MAX_PLSC:g}, {MAX_PLSC:g}], got {value!r}"
+                )
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,8 +140,8 @@ class TrainingConfig:
         Without it, free evidence swamps the hits on real logs.
     quadrature_spacing : float
         Clenshaw-Curtis node spacing along a segment, as a fraction of the
-        length scale. A segment of length ``L`` gets
-        ``ceil(L / (spacing * length_scale)) + 1`` nodes (clamped below).
+        length scale, at least 1e-6 (:data:`MIN_SPACING`). A segment of length ``L``
+        gets ``ceil(L / (spacing * length_scale)) + 1`` nodes (clamped below).
     min_quadrature_nodes, max_quadrature_nodes : int
         Bounds on the nodes per segment.
     """
@@ -115,7 +157,7 @@ class TrainingConfig:
             _positive("TrainingConfig", "free_margin", self.free_margin, allow_zero=True)
         if not isinstance(self.dedup, bool):
             raise OctolgpError(f"TrainingConfig.dedup must be a bool, got {self.dedup!r}")
-        _positive("TrainingConfig", "quadrature_spacing", self.quadrature_spacing)
+        _positive("TrainingConfig", "quadrature_spacing", self.quadrature_spacing, low=MIN_SPACING)
         _integer("TrainingConfig", "min_quadrature_nodes", self.min_quadrature_nodes, 2)
         _integer(
             "TrainingConfig",
@@ -132,13 +174,15 @@ class PartitionConfig:
     Parameters
     ----------
     box_size : float
-        Edge of the coarse boxes the hits are first split into, metres.
+        Edge of the coarse boxes the hits are first split into, metres, at least 1e-6
+        (:data:`MIN_SPACING`).
     max_cluster_size : int
         Cap on a cluster's own training items (hits plus their free segments)
         before extension; k-means is repeated on any cluster over it.
     overlap : float
         Extension of each cluster: its box grows by this fraction of its extent on
-        every side, and it takes in every hit (with its segment) inside. Default 0.2.
+        every side, and it takes in every hit (with its segment) inside; at most 100, so
+        that the grown boxes stay finite. Default 0.2.
     seed : int
         Seed of k-means.
     """
@@ -149,9 +193,9 @@ class PartitionConfig:
     seed: int = 0
 
     def __post_init__(self) -> None:
-        _positive("PartitionConfig", "box_size", self.box_size)
+        _positive("PartitionConfig", "box_size", self.box_size, low=MIN_SPACING, unit=" m")
         _integer("PartitionConfig", "max_cluster_size", self.max_cluster_size, 2)
-        _positive("PartitionConfig", "overlap", self.overlap, allow_zero=True)
+        _positive("PartitionConfig", "overlap", self.overlap, allow_zero=True, high=100.0)
         _integer("PartitionConfig", "seed", self.seed, 0)
 
 
@@ -325,13 +369,14 @@ class LatticeConfig:
         free looks count up to ``clear_scans`` scans
         (:func:`~octolgp.observations.effective_counts`): a voxel seen free once, beside
         a wall, weighs little, one seen free scan after scan (an opened doorway) the
-        most. Default 0.06 (``BENCHMARKS.md``, "Map quality on every log").
+        most. In [1e-6, 1e6], so that ``σn² / free_weight`` stays finite. Default 0.06
+        (``BENCHMARKS.md``, "Map quality on every log").
     inducing_spacing : float or None
-        Largest spacing of the inducing lattice as a fraction of the length scale; the
-        lattice gets ``ceil(halo box edge / (spacing × l))`` points per axis, at least
-        one per 3 voxels and at most ``max_inducing_per_axis``. ``None`` (default): 0.3
-        in 2D, 0.5 in 3D, where a denser lattice does not help and a leaf costs
-        ``k**6``.
+        Largest spacing of the inducing lattice as a fraction of the length scale, at
+        least 1e-6 (:data:`MIN_SPACING`); the lattice gets
+        ``ceil(halo box edge / (spacing × l))`` points per axis, at least one per 3 voxels
+        and at most ``max_inducing_per_axis``. ``None`` (default): 0.3 in 2D, 0.5 in 3D,
+        where a denser lattice does not help and a leaf costs ``k**6``.
     max_inducing_per_axis : int or None
         Cap on the lattice points per axis (the product table holds
         ``H k**d (k**d + 1) / 2`` floats). ``None`` (default): 12 in 2D, 4 in 3D.
@@ -351,9 +396,9 @@ class LatticeConfig:
 
     def __post_init__(self) -> None:
         _integer("LatticeConfig", "evidence_cap", self.evidence_cap, 1, 255)
-        _positive("LatticeConfig", "free_weight", self.free_weight)
+        _positive("LatticeConfig", "free_weight", self.free_weight, low=1e-6, high=1e6)
         if self.inducing_spacing is not None:
-            _positive("LatticeConfig", "inducing_spacing", self.inducing_spacing)
+            _positive("LatticeConfig", "inducing_spacing", self.inducing_spacing, low=MIN_SPACING)
         if self.max_inducing_per_axis is not None:
             _integer("LatticeConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 2, 16)
         if self.clear_margin is not None:
@@ -422,7 +467,8 @@ class MapConfig:
     hyperparameters : Hyperparameters or None
         ``None`` (default) learns them from the data; a value is used as given.
     memory_budget_mb : float or None
-        Bound on the RAM held by leaves; ``None`` (default) means no bound.
+        Bound on the RAM held by leaves, MB, at most 1e12 (:data:`MAX_MEMORY_BUDGET_MB`);
+        ``None`` (default) means no bound.
     tree_depth : int
         OctoMap key depth: keys are 16-bit, ``floor(x / resolution) + 2**(depth-1)``.
     online : OnlineConfig
@@ -450,14 +496,11 @@ class MapConfig:
     def __post_init__(self) -> None:
         if type(self.dim) is not int or self.dim not in (2, 3):
             raise OctolgpError(f"MapConfig.dim must be 2 or 3, got {self.dim!r}")
-        _positive("MapConfig", "resolution", self.resolution)
-        if self.resolution > MAX_RESOLUTION:
-            raise OctolgpError(
-                f"MapConfig.resolution must be at most {MAX_RESOLUTION:g} m, got "
-                f"{self.resolution!r}"
-            )
+        _positive("MapConfig", "resolution", self.resolution, high=MAX_RESOLUTION, unit=" m")
         if self.memory_budget_mb is not None:
-            _positive("MapConfig", "memory_budget_mb", self.memory_budget_mb)
+            _positive(
+                "MapConfig", "memory_budget_mb", self.memory_budget_mb, high=MAX_MEMORY_BUDGET_MB
+            )
         _integer("MapConfig", "tree_depth", self.tree_depth, 1, 16)
         for name, kind in _SECTIONS.items():
             value = getattr(self, name)
@@ -622,17 +665,24 @@ class MapConfig:
         MapFileNotFound
             If ``path`` does not exist.
         OctolgpError
-            On invalid TOML, an unknown key or a bad value, naming the file and the key
-            (``cfg.toml: online.clear_scan: unknown key (keys: ...)``).
+            On invalid TOML, an unknown key or a bad value, naming the file and the key,
+            and the key's line where it is written as ``key = value`` under its table
+            (``cfg.toml: online.clear_scan: unknown key (keys: ...) (line 4)``).
         """
         p = Path(path)
         if not p.is_file():
             raise MapFileNotFound(f"config file {str(p)!r} does not exist")
         try:
-            data = tomllib.loads(p.read_text())
+            text = p.read_text()
+            data = tomllib.loads(text)
         except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
             raise OctolgpError(f"config file {str(p)!r} is not valid TOML: {exc}") from None
-        return cls._from_dict(data, f"config file {str(p)!r}: ", toml_names=True)
+        try:
+            return cls._from_dict(data, "", toml_names=True)
+        except OctolgpError as exc:
+            line = _toml_line(text, str(exc))
+            at = "" if line is None else f" (line {line})"
+            raise OctolgpError(f"config file {str(p)!r}: {exc}{at}") from None
 
     def to_toml(self) -> str:
         """The config as TOML that :meth:`from_toml` reads back to an equal config.
@@ -730,6 +780,32 @@ def _toml_named(message: str) -> str:
         if message.startswith(section.__name__ + "."):
             return key + message[len(section.__name__) :]
     return message
+
+
+_KEY_PATH = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)(?:\.([A-Za-z_][A-Za-z0-9_]*))?[ :]")
+_TABLE = re.compile(r"\s*\[\s*([A-Za-z0-9_]+)\s*\]\s*(?:#.*)?$")
+
+
+def _toml_line(text: str, message: str) -> int | None:
+    """The 1-based line of TOML ``text`` that sets the key a message starts with, if found.
+
+    ``message`` starts with a TOML key path, ``resolution`` or ``online.halo``; the key is
+    found as ``key = ...`` at the top level or under its ``[section]`` header (inline
+    tables and dotted keys are not looked into).
+    """
+    found = _KEY_PATH.match(message)
+    if found is None:
+        return None
+    section, key = (None, found[1]) if found[2] is None else (found[1], found[2])
+    setting = re.compile(rf"\s*[\"']?{re.escape(key)}[\"']?\s*=")
+    table: str | None = None
+    for number, line in enumerate(text.splitlines(), start=1):  # one iteration per line
+        header = _TABLE.match(line)
+        if header is not None:
+            table = header[1]
+        elif table == section and setting.match(line):
+            return number
+    return None
 
 
 def _toml_value(value: object) -> str:
