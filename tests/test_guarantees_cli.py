@@ -61,6 +61,221 @@ def config_file(tmp_path: Path) -> Path:
     return path
 
 
+# --------------------------------------------------------------------------- outputs
+
+# an output, written again with --overwrite over an earlier file, and its side files
+OUTPUTS = {
+    "export .ply": (["export", "{map}", "--out", "{dir}/o.ply"], ["o.ply"]),
+    "export .pcd": (["export", "{map}", "--out", "{dir}/o.pcd"], ["o.pcd"]),
+    "export .bt": (["export", "{map}", "--out", "{dir}/o.bt"], ["o.bt"]),
+    "export .png": (["export", "{map}", "--out", "{dir}/o.png"], ["o.png"]),
+    "export .pgm": (["export", "{map}", "--out", "{dir}/o.pgm"], ["o.pgm", "o.yaml"]),
+    "query": (["query", "{map}", "--points", "{dir}/pts.npy", "--out", "{dir}/p.npy"], ["p.npy"]),
+    "simulate": (["simulate", "paper2d", "--out", "{dir}/sim.npz"], ["sim.npz"]),
+}
+
+FULL_DISK = """
+import resource, sys
+from octolgp.cli import main
+_, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+resource.setrlimit(resource.RLIMIT_FSIZE, (1024, hard))  # writes past 1 KiB fail (EFBIG)
+sys.exit(main(sys.argv[1:]))
+"""
+
+KILLED = """
+import builtins, os, sys
+from octolgp.cli import main
+real_open = builtins.open
+class Dying:  # a file whose writer is killed once it has written 1 KiB
+    def __init__(self, f):
+        self.f, self.n = f, 0
+    def write(self, b):
+        self.n += memoryview(b).nbytes
+        if self.n > 1024:
+            self.f.write(bytes(memoryview(b))[:16]); self.f.flush(); os._exit(137)
+        return self.f.write(b)
+    def __getattr__(self, name):
+        return getattr(self.f, name)
+    def __enter__(self):
+        return self
+    def __exit__(self, *exc):
+        return self.f.__exit__(*exc)
+def dying_open(file, mode="r", *args, **kwargs):
+    f = real_open(file, mode, *args, **kwargs)
+    return Dying(f) if "w" in mode and str(file).endswith(sys.argv[1]) else f
+builtins.open = dying_open
+sys.exit(main(sys.argv[2:]))
+"""
+
+
+def _argv(template: list[str], map_path: Path, folder: Path) -> list[str]:
+    return [a.format(map=map_path, dir=folder) for a in template]
+
+
+@pytest.mark.parametrize("name", list(OUTPUTS))
+def test_a_full_disk_keeps_the_earlier_output_and_leaves_no_temporary_file(
+    name: str, map2d: Path, tmp_path: Path
+) -> None:
+    template, files = OUTPUTS[name]
+    np.save(tmp_path / "pts.npy", np.zeros((1000, 2)))
+    for f in files:
+        (tmp_path / f).write_bytes(PRECIOUS)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}
+    proc = subprocess.run(
+        [sys.executable, "-c", FULL_DISK, *_argv(template, map2d, tmp_path), "--overwrite"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr
+    assert files[0] in lines[0]  # names the file it could not write
+    for f in files:
+        assert (tmp_path / f).read_bytes() == PRECIOUS, f
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no temporary file left
+
+
+@pytest.mark.parametrize("name", ["export .ply", "export .pgm", "query"])
+def test_a_killed_export_leaves_no_half_file(name: str, map2d: Path, tmp_path: Path) -> None:
+    template, files = OUTPUTS[name]
+    np.save(tmp_path / "pts.npy", np.zeros((1000, 2)))
+    suffix = Path(files[0]).suffix
+    proc = subprocess.run(
+        [sys.executable, "-c", KILLED, suffix, *_argv(template, map2d, tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 137, proc.stderr[-2000:]  # killed mid-write
+    for f in files:
+        assert not (tmp_path / f).exists(), f
+    # with the earlier file there, the kill keeps it whole
+    for f in files:
+        (tmp_path / f).write_bytes(PRECIOUS)
+    proc = subprocess.run(
+        [sys.executable, "-c", KILLED, suffix, *_argv(template, map2d, tmp_path), "--overwrite"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 137, proc.stderr[-2000:]
+    for f in files:
+        assert (tmp_path / f).read_bytes() == PRECIOUS, f
+
+
+def test_exports_write_whole_files_with_the_default_permissions(
+    map2d: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "o.pgm"
+    assert main(["export", str(map2d), "--out", str(out)]) == 0
+    mask = os.umask(0)
+    os.umask(mask)
+    for f in (out, out.with_suffix(".yaml")):
+        assert f.stat().st_mode & 0o777 == 0o666 & ~mask
+    assert f"image: {out.name}\n" in out.with_suffix(".yaml").read_text()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.pgm", "o.yaml"]
+
+
+def test_run_and_build_refuse_an_existing_config_or_recording(
+    tmp_path: Path, config_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "a.npz"
+    save_scan_log(log, SCANS[:3])
+    out = tmp_path / "m.octolgp"
+    toml = tmp_path / "m.octolgp.toml"  # left from an earlier map, the map deleted
+    toml.write_bytes(PRECIOUS)
+    common = ["--out", str(out), "--config", str(config_file), "--quiet"]
+    for cmd in (["run", str(log), *common], ["build", str(log), *common]):
+        capsys.readouterr()
+        assert main(cmd) == 2
+        line = one_error_line(capsys)
+        assert "m.octolgp.toml" in line
+        assert "already exists" in line
+        assert toml.read_bytes() == PRECIOUS
+        assert not out.exists()
+    toml.unlink()
+    rrd = tmp_path / "rec.rrd"
+    rrd.write_bytes(PRECIOUS)
+    assert main(["run", str(log), *common, "--rerun-save", str(rrd)]) == 2
+    line = one_error_line(capsys)
+    assert "--rerun-save" in line
+    assert "rec.rrd" in line
+    assert rrd.read_bytes() == PRECIOUS
+    assert not out.exists()
+    assert not toml.exists()
+    assert main(["run", str(log), *common, "--rerun-save", str(rrd), "--overwrite"]) == 0
+    assert rrd.read_bytes() != PRECIOUS
+    assert MapConfig.from_toml(toml).hyperparameters == HP
+
+
+# --------------------------------------------------------------------------- resume
+
+
+def test_resume_checks_the_log_against_the_journal(
+    tmp_path: Path, config_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    log = tmp_path / "a.npz"
+    save_scan_log(log, SCANS)
+    out = tmp_path / "m.octolgp"
+    common = ["--out", str(out), "--config", str(config_file), "--quiet"]
+    assert main(["run", str(log), *common, "--limit", "4"]) == 0
+    # --limit counts the log's scans: 2 is fewer than the map holds, so nothing to add
+    assert main(["run", str(log), *common, "--resume", "--limit", "2"]) == 0
+    with OnlineMap.open(out, read_only=True) as m:
+        assert m.n_scans == 4
+    short = tmp_path / "short.npz"
+    save_scan_log(short, SCANS[:3])
+    other = tmp_path / "other.npz"  # the same first two scans, then another
+    save_scan_log(other, [*SCANS[:2], SCANS[3], SCANS[2], *SCANS[4:]])
+    capsys.readouterr()
+    assert main(["run", str(short), *common, "--resume"]) == 2
+    line = one_error_line(capsys)
+    assert "short.npz' holds 3 scans" in line
+    assert "m.octolgp' 4" in line
+    assert main(["run", str(other), *common, "--resume"]) == 2
+    line = one_error_line(capsys)
+    assert "scan 3 of SCANS is not scan 3" in line
+    assert "other.npz" in line
+    assert "m.octolgp" in line
+    with OnlineMap.open(out, read_only=True) as m:
+        assert m.n_scans == 4
+    saved = tmp_path / "saved.octolgp"
+    memory = OnlineMap(CONFIG)  # a map in memory keeps no journal, nor does its save
+    memory.insert_scans(SCANS[:4])
+    memory.save(saved)
+    assert main(["run", str(log), *common, "--out", str(saved), "--resume"]) == 2
+    assert "keeps no journal" in one_error_line(capsys)
+    assert main(["run", str(log), *common, "--resume"]) == 0
+    with OnlineMap.open(out, read_only=True) as m:
+        assert m.n_scans == len(SCANS)
+
+
+# --------------------------------------------------------------------------- refused scans
+
+
+@pytest.mark.parametrize("command", ["run", "build"])
+def test_a_refused_scan_names_its_number_and_its_log(
+    command: str, tmp_path: Path, config_file: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    far = Scan(origin=[0.0, 0.0], points=[[5000.0, 0.0], [1.0, 1.0]])
+    log = tmp_path / "bad.npz"
+    save_scan_log(log, [SCANS[0], SCANS[1], far, SCANS[2]])
+    out = tmp_path / "m.octolgp"
+    capsys.readouterr()
+    argv = [command, str(log), "--out", str(out), "--config", str(config_file), "--quiet"]
+    assert main(argv) == 2
+    line = one_error_line(capsys)
+    assert f"SCANS {str(log)!r}, scan 3: " in line
+    assert "outside the addressable range" in line
+
+
 # --------------------------------------------------------------------------- configs
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from octolgp.cli.configs import check_outputs
-from octolgp.cli.scans import first_and_rest
+from octolgp.cli.scans import check_scans, first_and_rest
 from octolgp.errors import OctolgpError
 
 __all__ = ["cmd_bench", "cmd_build", "cmd_eval", "cmd_simulate"]
@@ -20,6 +20,7 @@ __all__ = ["cmd_bench", "cmd_build", "cmd_eval", "cmd_simulate"]
 
 def cmd_simulate(args: argparse.Namespace) -> int:
     """``octolgp simulate paper2d``: the paper's 2D simulation, with ground truth, as an npz."""
+    from octolgp.export.common import replacing
     from octolgp.io import save_scan_log
     from octolgp.sim.scenes import simulate_paper2d
 
@@ -29,7 +30,8 @@ def cmd_simulate(args: argparse.Namespace) -> int:
         raise OctolgpError(f"--out must end in .npz, got {str(out)!r}")
     check_outputs(args.overwrite, out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    save_scan_log(out, data.scans, data.truth_points, data.truth_labels)
+    with replacing(out) as tmp:  # never half a file at --out
+        save_scan_log(tmp, data.scans, data.truth_points, data.truth_labels)
     n = sum(len(s) for s in data.scans)
     print(
         f"wrote {out}: {len(data.scans)} scans, {n} beams, {data.truth_points.shape[0]} test points"
@@ -92,10 +94,11 @@ def _build_with_progress(
 def cmd_build(args: argparse.Namespace) -> int:
     """``octolgp build``: batch-build a map file from a whole log, each leaf fitted once."""
     import itertools
-    import os
 
     from octolgp.batch.build import SCHEDULED
-    from octolgp.cli.configs import config_path, resolve_config, write_config
+    from octolgp.cli.configs import check_config_output, config_path, resolve_config, write_config
+    from octolgp.export.common import SQLITE_SIDECARS, replacing
+    from octolgp.persist.mapfile import check_output
 
     out = Path(args.out)
     config_file = config_path(out)
@@ -103,24 +106,24 @@ def cmd_build(args: argparse.Namespace) -> int:
         raise OctolgpError(
             f"--scheduler runs --method {' or '.join(SCHEDULED)} only, got --method {args.method}"
         )
-    if out.exists() and not args.overwrite:
-        raise OctolgpError(f"--out {str(out)!r} already exists (pass --overwrite to replace it)")
+    check_outputs(args.overwrite, out)
     first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
     scan_list = list(itertools.islice(scans, args.limit))
     if args.downsample is not None:
         scan_list = [s.downsample(args.downsample) for s in scan_list]
     config = resolve_config(args, first.dim)
+    check_scans(scan_list, config, f"SCANS {args.scans!r}")
+    check_config_output(args.overwrite, config_file, args.config, config)
+    check_output(out, overwrite=True)  # never a map another writer holds
     scheduler = args.scheduler
     if not args.quiet:
         where = "this process" if scheduler is None else f"Dask ({scheduler})"
         print(f"building {len(scan_list)} scans in {where} ...", file=sys.stderr, flush=True)
     # build beside the target and rename at the end: a killed build leaves no half map
-    partial = out.with_name(out.name + ".partial")
-    partial.unlink(missing_ok=True)
-    m = _build_with_progress(scan_list, config, partial, args)
-    stats = m.build_stats
-    m.close()
-    os.replace(partial, out)
+    with replacing(out, sidecars=SQLITE_SIDECARS) as partial:
+        m = _build_with_progress(scan_list, config, partial, args)
+        stats = m.build_stats
+        m.close()
     write_config(config, config_file, args.config)
     print(
         f"wrote {out}: {len(scan_list)} scans, {int(stats['items'])} training items, "

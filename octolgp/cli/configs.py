@@ -19,6 +19,8 @@ from octolgp.errors import OctolgpError
 __all__ = [
     "add_config_option",
     "add_dump_config",
+    "check_config_output",
+    "check_outputs",
     "cmd_dump_config",
     "config_path",
     "resolve_config",
@@ -78,8 +80,10 @@ def resolve_config(
     return (dataclasses.replace(base, **changes) if changes else base).resolve()
 
 
-def check_outputs(overwrite: bool, *paths: Path) -> None:
+def check_outputs(overwrite: bool, *paths: Path, what: str = "--out") -> None:
     """Refuse outputs that exist already unless ``--overwrite`` was given.
+
+    ``what`` names the outputs in the message (the option, or what the file is).
 
     Raises
     ------
@@ -88,7 +92,35 @@ def check_outputs(overwrite: bool, *paths: Path) -> None:
     """
     for p in paths:  # one iteration per file the command writes
         if p.exists() and not overwrite:
-            raise OctolgpError(f"--out {str(p)!r} already exists (pass --overwrite to replace it)")
+            raise OctolgpError(f"{what} {str(p)!r} already exists (pass --overwrite to replace it)")
+
+
+def check_config_output(
+    overwrite: bool, target: Path, given: str | None, config: MapConfig
+) -> None:
+    """Refuse, before any work, what :func:`write_config` would refuse or overwrite.
+
+    An existing ``target`` is refused unless ``--overwrite``, but for the ``--config`` file
+    itself (``given``), which is kept when it reads back to ``config`` and refused
+    otherwise.
+
+    Raises
+    ------
+    OctolgpError
+        Naming ``target``.
+    """
+    if given is not None and _is_given(target, given):
+        if MapConfig.from_toml(given) != config:
+            raise OctolgpError(
+                f"the resolved config would overwrite --config {given!r}: choose another --out"
+            )
+        return
+    check_outputs(overwrite, target, what="the resolved config")
+
+
+def _is_given(target: Path, given: str) -> bool:
+    """Whether ``target`` is the ``--config`` file ``given``."""
+    return target.exists() and target.resolve() == Path(given).resolve()
 
 
 def config_path(out: str | Path, folder: bool = False) -> Path:
@@ -108,19 +140,22 @@ def write_config(config: MapConfig, target: Path, given: str | None = None) -> P
     ``given`` is the ``--config`` file: when ``target`` is that file, it is left as it is if
     it reads back to ``config``, and refused otherwise (the user's file is never rewritten).
 
+    The file is written through a temporary file and a rename
+    (:func:`~octolgp.export.common.replacing`): never half a file.
+
     Raises
     ------
     OctolgpError
-        If ``target`` is the ``--config`` file and the flags changed the config.
+        If ``target`` is the ``--config`` file and the flags changed the config, or
+        ``target`` cannot be written.
     """
-    if given is not None and target.exists() and target.resolve() == Path(given).resolve():
-        if MapConfig.from_toml(given) == config:
-            return target
-        raise OctolgpError(
-            f"the resolved config would overwrite --config {given!r}: choose another --out"
-        )
+    from octolgp.export.common import write_bytes
+
+    if given is not None and _is_given(target, given):
+        check_config_output(False, target, given, config)  # kept as it is, or refused
+        return target
     target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(config.to_toml())
+    write_bytes(target, [config.to_toml().encode("utf-8")])
     return target
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -20,6 +19,7 @@ def cmd_query(args: argparse.Namespace) -> int:
     """``octolgp query``: P(occupied) of a map file at the points of a ``.npy``, into a ``.npy``."""
     import numpy as np
 
+    from octolgp.export.common import replacing
     from octolgp.mapping.online import OnlineMap
 
     pts_path = Path(args.points)
@@ -33,11 +33,9 @@ def cmd_query(args: argparse.Namespace) -> int:
     check_outputs(args.overwrite, out)
     with OnlineMap.open(args.map, read_only=True) as m:
         prob = m.occupancy(pts, interpolate=not args.nearest)
-    tmp = out.with_name(f".{out.name}.tmp")
-    with tmp.open("wb") as fh:  # a temporary file, then a rename: never half a file
+    with replacing(out) as tmp, open(tmp, "wb") as fh:  # never half a file at --out
         np.save(fh, prob)
-    os.replace(tmp, out)
-    print(f"wrote {args.out}: P(occupied) at {prob.size} points")
+    print(f"wrote {out}: P(occupied) at {prob.size} points")
     return 0
 
 

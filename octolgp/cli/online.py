@@ -15,7 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from octolgp.cli.scans import first_and_rest
+from octolgp.cli.scans import first_and_rest, refused_scan
 from octolgp.errors import OctolgpError
 
 __all__ = ["cmd_replay", "cmd_run"]
@@ -88,41 +88,58 @@ def _reopen(out: Path, config: Any, config_file: Path, given: str | None) -> Any
     return m
 
 
-def _after_journal(m: Any, scans: Iterator[Any], out: Path) -> Iterator[Any]:
+def _after_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iterator[Any]:
     """The scans after those ``m`` journaled, once the log is checked to begin with them.
+
+    ``source`` names the log in messages (``SCANS 'intel.log'``). The map is closed when
+    the check fails.
 
     Raises
     ------
     OctolgpError
-        If the map keeps no journal, or the log's first scans are not the journaled ones.
+        If the map keeps no journal, the log is shorter than the journal, or the log's
+        first scans are not the journaled ones (origins and points compared exactly: both
+        are the loader's float64 values).
     """
+    try:
+        return _check_journal(m, iter(scans), out, source)
+    except BaseException:
+        m.close()
+        raise
+
+
+def _check_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iterator[Any]:
+    """:func:`_after_journal`, leaving the map open."""
     import numpy as np
 
-    scans = iter(scans)
     n = 0
     for n, mine in enumerate(m.scans(), start=1):  # one iteration per journaled scan
         theirs = next(scans, None)
-        if theirs is None or not (
+        if theirs is None:
+            raise OctolgpError(
+                f"--resume: {source} holds {n - 1} scans, {str(out)!r} {m.n_scans}: the map "
+                "was built from another log"
+            )
+        if not (
             np.array_equal(theirs.origin, mine.origin)
             and np.array_equal(theirs.points, mine.points)
         ):
-            m.close()
             raise OctolgpError(
-                f"--resume: scan {n} of SCANS is not scan {n} of {str(out)!r}: the map was "
-                "built from another log (or a log filtered another way)"
+                f"--resume: scan {n} of SCANS is not scan {n} of {str(out)!r} ({source}): the "
+                "map was built from another log (or a log filtered another way)"
             )
-    if n != m.n_scans:
-        m.close()
+    if n != m.n_scans:  # a journal holds every scan or none
         raise OctolgpError(
             f"--resume: {str(out)!r} keeps no journal of its {m.n_scans} scans (saved from "
-            "memory), so it cannot be checked against SCANS"
+            f"memory), so it cannot be checked against {source}"
         )
     return scans
 
 
-def _insert_all(m: Any, scans: Iterator[Any], quiet: bool) -> int:
+def _insert_all(m: Any, scans: Iterator[Any], quiet: bool, source: str) -> int:
     """Insert the scans one by one (a progress bar in scans/s), then flush the bootstrap.
 
+    A refused scan is named by its number in the log and ``source`` (``SCANS 'x.log'``).
     Returns the kernel matrices repaired by jitter.
     """
     from tqdm import tqdm
@@ -133,18 +150,27 @@ def _insert_all(m: Any, scans: Iterator[Any], quiet: bool) -> int:
         try:
             update = m.insert_scan(scan)
         except OctolgpError as exc:
-            raise OctolgpError(f"SCANS scan {m.n_scans + 1}: {exc}") from None
+            raise refused_scan(source, m.n_scans + 1, exc) from None
         repaired += update.repaired
         bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
     last = m.flush()
     return repaired + (0 if last is None else last.repaired)
 
 
-def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> int:
-    """Insert scans one by one into a new map file (progress bar in scans/s)."""
+def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace, source: str) -> int:
+    """Insert scans one by one into a new map file (progress bar in scans/s).
+
+    ``source`` names the log in messages (``SCANS 'intel.log'``).
+    """
     import itertools
 
-    from octolgp.cli.configs import config_path, resolve_config, write_config
+    from octolgp.cli.configs import (
+        check_config_output,
+        check_outputs,
+        config_path,
+        resolve_config,
+        write_config,
+    )
     from octolgp.mapping.online import OnlineMap
     from octolgp.persist.mapfile import check_output
 
@@ -155,28 +181,33 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
             f"--out {str(out)!r} already exists (pass --resume to continue it, "
             "--overwrite to replace it)"
         )
-    if args.limit is not None:
-        scans = itertools.islice(scans, args.limit)
+    if args.rerun_save:
+        check_outputs(args.overwrite, Path(args.rerun_save), what="--rerun-save")
     config = resolve_config(args, first.dim, n_jobs=args.jobs)
     config_file = config_path(out)
     if not resume:
+        check_config_output(args.overwrite, config_file, args.config, config)
+        check_output(out, overwrite=True)  # never a map another writer holds
         write_config(config, config_file, args.config)
     rec, url = _recording(args, config.dim)
     sink = None if rec is None else _sink(rec, args)
     if resume:
         m = _reopen(out, config, config_file, args.config)
         m.sink = m.sink if sink is None else sink
-        scans = _after_journal(m, scans, out)
+        scans = _after_journal(m, scans, out, source)
+        if args.limit is not None:  # --limit counts the log's scans, those journaled too
+            scans = itertools.islice(scans, max(0, args.limit - m.n_scans))
         print(f"resuming {out} after {m.n_scans} scans")
     else:
-        check_output(out, overwrite=True)  # never a map another writer holds
+        if args.limit is not None:
+            scans = itertools.islice(scans, args.limit)
         for suffix in ("", "-wal", "-shm"):
             Path(str(out) + suffix).unlink(missing_ok=True)
         out.parent.mkdir(parents=True, exist_ok=True)
         m = OnlineMap(config, path=out, sink=sink)
     try:
         with m:
-            repaired = _insert_all(m, scans, args.quiet)
+            repaired = _insert_all(m, scans, args.quiet, source)
             n_leaves, n_scans = len(m.store), m.n_scans
     except BaseException:
         if rec is not None:
@@ -202,7 +233,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace) -> in
 def cmd_run(args: argparse.Namespace) -> int:
     """``octolgp run``: map a scan log online, scan by scan."""
     first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
-    return _map_scans(scans, first, args)
+    return _map_scans(scans, first, args, f"SCANS {args.scans!r}")
 
 
 def cmd_replay(args: argparse.Namespace) -> int:
@@ -222,7 +253,8 @@ def cmd_replay(args: argparse.Namespace) -> int:
     first = next(it, None)
     if first is None:
         raise OctolgpError(f"recording {args.recording!r} holds no scans")
-    status = _map_scans(itertools.chain([first], it), first, args)
+    source = f"recording {args.recording!r}"
+    status = _map_scans(itertools.chain([first], it), first, args, source)
     for note in getattr(reader, "notes", []):
         print(f"note: {note}")
     return status

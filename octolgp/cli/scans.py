@@ -8,7 +8,7 @@ from typing import Any
 
 from octolgp.errors import OctolgpError
 
-__all__ = ["first_and_rest"]
+__all__ = ["check_scans", "first_and_rest", "refused_scan"]
 
 
 def first_and_rest(path: str, fmt: str | None, skip_bad: bool = False) -> tuple[Any, Iterator[Any]]:
@@ -35,3 +35,30 @@ def first_and_rest(path: str, fmt: str | None, skip_bad: bool = False) -> tuple[
     if first is None:
         raise OctolgpError(f"SCANS {path!r} holds no scans")
     return first, itertools.chain([first], it, report())
+
+
+def refused_scan(source: str, number: int, exc: OctolgpError) -> OctolgpError:
+    """The error for scan ``number`` (from 1) of a log a map refuses.
+
+    ``source`` names the log (``SCANS 'intel.log'``): ``SCANS 'intel.log', scan 12: why``.
+    """
+    return OctolgpError(f"{source}, scan {number}: {exc}")
+
+
+def check_scans(scans: list[Any], config: Any, source: str) -> None:
+    """Check every scan as a map of ``config`` checks it, before a batch build.
+
+    Raises
+    ------
+    OctolgpError
+        For the first scan the map would refuse, by :func:`refused_scan`.
+    """
+    from octolgp.mapping.evidence import check_scan
+    from octolgp.mapping.grid import LeafGrid
+
+    grid = LeafGrid.from_config(config)
+    for number, scan in enumerate(scans, start=1):  # one iteration per scan
+        try:
+            check_scan(scan, config, grid)
+        except OctolgpError as exc:
+            raise refused_scan(source, number, exc) from None

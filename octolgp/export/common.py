@@ -1,9 +1,19 @@
-"""Argument checks and file output shared by the exporters (OctoMap, PLY, PCD, PNG)."""
+"""Argument checks and file output shared by the exporters (OctoMap, PLY, PCD, PNG).
+
+Every file octolgp writes outside a map file goes through :func:`replacing`: it is
+written under a temporary name in its own directory and renamed onto its path once
+complete, so a full disk or a killed process never leaves half a file at the path
+and never destroys the file that was there.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import io
 import os
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -93,11 +103,97 @@ def xyz_prob_body(centres: ArrayLike, prob: ArrayLike, *, binary: bool) -> tuple
     return c.shape[0], text.getvalue().encode("ascii")
 
 
-def write_bytes(path: PathLike, chunks: list[bytes]) -> None:
-    """Write ``chunks`` to ``path``; an OS failure raises :class:`OctolgpError`."""
+SQLITE_SIDECARS = ("-journal", "-wal", "-shm")
+"""The files SQLite keeps beside a database: removed with a temporary map file."""
+
+
+def _remove(path: Path, sidecars: tuple[str, ...]) -> None:
+    """Delete ``path`` and its sidecars where they exist."""
+    for suffix in ("", *sidecars):  # one iteration per file of the temporary output
+        with contextlib.suppress(OSError):
+            Path(str(path) + suffix).unlink(missing_ok=True)
+
+
+def _sync_rename(tmp: Path, target: Path) -> None:
+    """Flush ``tmp`` to disk, rename it onto ``target``, then flush the directory entry."""
+    fd = os.open(tmp, os.O_RDONLY)
     try:
-        with open(path, "wb") as f:
-            for chunk in chunks:
-                f.write(chunk)
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, target)
+    with contextlib.suppress(OSError):  # a file system without directory fsync
+        dir_fd = os.open(target.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+
+
+@contextlib.contextmanager
+def replacing(path: PathLike, *, sidecars: tuple[str, ...] = ()) -> Iterator[Path]:
+    """A temporary path beside ``path`` that replaces ``path`` once the block succeeds.
+
+    The block writes a new file at the yielded path, which does not exist yet and lies in
+    ``path``'s directory with ``path``'s suffix (writers that choose the format by the
+    extension choose the same one). When the block ends normally the file is flushed to
+    disk and renamed onto ``path`` (``os.replace``, atomic on POSIX): readers see the old
+    file or the whole new one. When the block raises, the temporary file (and its
+    ``sidecars``) is removed and ``path`` is untouched, so a full disk never destroys the
+    earlier file; a killed process leaves at most the hidden temporary file, never a part
+    at ``path``. A symbolic link is followed: the file it points to is replaced. A path that
+    exists and is not a regular file (``/dev/null``, a FIFO) is written in place.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        The file to write.
+    sidecars : tuple of str, optional
+        Suffixes of files the writer may leave beside the temporary file, removed with it
+        when the block raises (:data:`SQLITE_SIDECARS` for a map file, which the block
+        closes before it ends).
+
+    Yields
+    ------
+    Path
+        Where the block writes the file.
+
+    Raises
+    ------
+    OctolgpError
+        Naming ``path``, when the block raises :class:`OSError` (a full disk, a directory
+        that does not exist or cannot be written) or the flush or rename fails.
+    """
+    target = Path(os.path.realpath(path))
+    if target.exists() and not target.is_file():
+        yield target
+        return
+    tmp = target.with_name(f".{target.name}.{secrets.token_hex(4)}.part{target.suffix}")
+    try:
+        yield tmp
+        _sync_rename(tmp, target)
     except OSError as exc:
+        _remove(tmp, sidecars)
         raise OctolgpError(f"path {os.fspath(path)!r} cannot be written: {exc}") from exc
+    except BaseException:
+        _remove(tmp, sidecars)
+        raise
+
+
+def write_chunks(path: PathLike, chunks: list[bytes]) -> None:
+    """Write ``chunks`` to a new file ``path`` (no rename; see :func:`write_bytes`)."""
+    with open(path, "wb") as f:
+        for chunk in chunks:  # one write per chunk
+            f.write(chunk)
+
+
+def write_bytes(path: PathLike, chunks: list[bytes]) -> None:
+    """Write ``chunks`` to ``path`` through a temporary file (:func:`replacing`).
+
+    Raises
+    ------
+    OctolgpError
+        Naming ``path`` when it cannot be written; the file that was there is kept.
+    """
+    with replacing(path) as tmp:
+        write_chunks(tmp, chunks)

@@ -5,14 +5,13 @@ Matplotlib and Pillow are imported lazily.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.export.common import PathLike, as_centres, as_prob
+from octolgp.export.common import PathLike, as_centres, as_prob, replacing
 from octolgp.geometry.keys import addressable_range
 
 __all__ = ["floor_plan", "occupancy_raster", "write_floor_plan", "write_png"]
@@ -116,10 +115,8 @@ def write_png(
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
     fig.colorbar(image, ax=ax, label="P(occupied)")
-    try:
-        fig.savefig(os.fspath(path), dpi=dpi)
-    except OSError as exc:
-        raise OctolgpError(f"path {os.fspath(path)!r} cannot be written: {exc}") from exc
+    with replacing(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
 
 
 def floor_plan(
@@ -194,7 +191,5 @@ def write_floor_plan(path: PathLike, image: ArrayLike) -> None:
         raise OctolgpError(f"floor plan must be a non-empty 2D uint8 array, got {grey.shape}")
     from PIL import Image  # lazy: keeps `import octolgp` light
 
-    try:
-        Image.fromarray(np.ascontiguousarray(grey)).save(os.fspath(path), optimize=True)
-    except OSError as exc:
-        raise OctolgpError(f"path {os.fspath(path)!r} cannot be written: {exc}") from exc
+    with replacing(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(grey)).save(tmp, optimize=True)

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.export.common import PathLike, as_centres, as_prob, write_bytes
+from octolgp.export.common import PathLike, as_centres, as_prob, replacing, write_chunks
 from octolgp.geometry.keys import addressable_range
 
 __all__ = [
@@ -258,7 +258,6 @@ def write_nav2_map(
     rel = index - low
     grid[ny - 1 - rel[:, 1], rel[:, 0]] = lut[which]  # image row 0 is the largest y
     header = f"P5\n# octolgp occupancy, {float(resolution)!r} m per cell\n{nx} {ny}\n255\n"
-    write_bytes(pgm, [header.encode("ascii"), grid.tobytes()])
     origin = low * resolution
     yaml = pgm.with_suffix(".yaml")
     occ, free = float(occupied_thresh), float(free_thresh)
@@ -269,5 +268,9 @@ def write_nav2_map(
         f"origin: [{float(origin[0])!r}, {float(origin[1])!r}, 0.0]\nnegate: 0\n"
         f"occupied_thresh: {LOAD_OCCUPIED_THRESH!r}\nfree_thresh: {LOAD_FREE_THRESH!r}\n"
     )
-    write_bytes(yaml, [text.encode("utf-8")])
+    # both files are written in full before either is renamed into place
+    with replacing(pgm) as pgm_tmp:
+        write_chunks(pgm_tmp, [header.encode("ascii"), grid.tobytes()])
+        with replacing(yaml) as yaml_tmp:
+            write_chunks(yaml_tmp, [text.encode("utf-8")])
     return yaml
