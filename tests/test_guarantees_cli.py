@@ -329,3 +329,46 @@ def test_a_bad_config_value_names_the_file_the_field_and_the_line(
     assert f"config file {str(cfg)!r}: " in message
     assert field in message
     assert message.endswith(f"(line {line})")
+
+
+# --------------------------------------------------------------------------- I/O faults
+
+
+@pytest.mark.parametrize(
+    "fault",
+    [
+        sqlite3.OperationalError("database or disk is full"),
+        OSError(28, "No space left on device"),
+    ],
+)
+def test_an_io_fault_is_one_line_naming_the_map(
+    fault: Exception,
+    map2d: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    def failing_open(*args: Any, **kwargs: Any) -> OnlineMap:
+        raise fault
+
+    monkeypatch.setattr(OnlineMap, "open", failing_open)
+    np.save(tmp_path / "pts.npy", np.zeros((3, 2)))
+    argv = ["query", str(map2d), "--points", str(tmp_path / "pts.npy")]
+    capsys.readouterr()
+    assert main([*argv, "--out", str(tmp_path / "p.npy")]) == 2
+    line = one_error_line(capsys)
+    assert str(map2d) in line
+    assert str(fault.args[-1]) in line
+
+
+def test_an_unexpected_error_still_shows_its_traceback(
+    map2d: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    def failing_open(*args: Any, **kwargs: Any) -> OnlineMap:
+        raise RuntimeError("a bug")
+
+    monkeypatch.setattr(OnlineMap, "open", failing_open)
+    np.save(tmp_path / "pts.npy", np.zeros((3, 2)))
+    argv = ["query", str(map2d), "--points", str(tmp_path / "pts.npy")]
+    with pytest.raises(RuntimeError, match="a bug"):
+        main([*argv, "--out", str(tmp_path / "p.npy")])

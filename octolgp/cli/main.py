@@ -342,17 +342,48 @@ def make_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _is_database_error(exc: BaseException) -> bool:
+    """Whether ``exc`` is an :class:`sqlite3.Error`.
+
+    Told by its class, without importing the module: the map file's database belongs to
+    :mod:`octolgp.persist`.
+    """
+    return any(c.__module__ == "sqlite3" for c in type(exc).__mro__[:-2])
+
+
+def _message(exc: Exception, args: argparse.Namespace) -> str:
+    """The one-line message of an error that ends a command.
+
+    An :class:`OSError` names its file where it knows it; a database error (a fault the
+    map file did not turn into an ``OctolgpError``) and an ``OSError`` without a file
+    name are told with the command's map file (``MAP``, else ``--out``).
+    """
+    text = str(exc) or type(exc).__name__
+    known = isinstance(exc, OctolgpError) or getattr(exc, "filename", None) is not None
+    if not known:
+        path = getattr(args, "map", None) or getattr(args, "out", None)
+        kind = "database error" if _is_database_error(exc) else "I/O error"
+        text = f"{kind} on {path!r}: {text}" if path else f"{kind}: {text}"
+    return " ".join(text.split())
+
+
 def main(argv: list[str] | None = None) -> int:
-    """Run the CLI; returns the exit status (0 ok, 2 bad input)."""
+    """Run the CLI; returns the exit status (0 ok, 2 bad input or an I/O fault).
+
+    An :class:`~octolgp.errors.OctolgpError`, an :class:`OSError` (a full disk, a denied
+    permission) or an :class:`sqlite3.Error` ends the command with one line on stderr and
+    exit status 2 (``--debug`` shows the traceback); any other exception is a bug and shows
+    its traceback.
+    """
     parser = make_parser()
     args = parser.parse_args(argv)
     try:
         return int(args.func(args))
-    except (OctolgpError, OSError) as exc:
-        if args.debug:
+    except Exception as exc:
+        reported = isinstance(exc, OctolgpError | OSError) or _is_database_error(exc)
+        if args.debug or not reported:
             raise
-        message = " ".join(str(exc).split())
-        print(f"octolgp: error: {message}", file=sys.stderr)
+        print(f"octolgp: error: {_message(exc, args)}", file=sys.stderr)
         return 2
 
 
