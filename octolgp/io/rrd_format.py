@@ -172,7 +172,7 @@ def scan_framing(path: Path) -> Framing:
             if closed:  # footer trailer (or padding) after an End message
                 break
             if len(head) < _MESSAGE_HEADER.size:
-                problem = f"cut inside a message header at byte {off}"
+                problem = f"an incomplete message header at byte {off}"
                 break
             kind, length = _MESSAGE_HEADER.unpack(head)
             if kind not in _KINDS:
