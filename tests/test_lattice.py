@@ -11,11 +11,12 @@ from octolgp import Hyperparameters
 from octolgp.gp.kernels import matern32
 from octolgp.gp.lattice import (
     LatticeGeometry,
+    Returns,
     dtc_reference,
     inducing_per_axis,
+    inverse_cholesky_factors,
     lattice_posterior,
     lattice_tables,
-    spd_inverse,
 )
 
 HP = Hyperparameters(length_scale=0.5, signal_variance=1.7, noise_variance=0.05, alpha=3.0)
@@ -64,23 +65,48 @@ def test_the_batched_posterior_is_the_dtc_written_out(
     np.testing.assert_allclose(var[0], HP.signal_variance, rtol=1e-9)
 
 
-@pytest.mark.parametrize("m", [5, 127, 128, 150])
-def test_the_spd_inverse_is_numpys_inverse(m: int) -> None:
+@pytest.mark.parametrize("m", [5, 27, 127, 128, 150])
+def test_the_inverse_cholesky_factor_whitens_the_matrix(m: int) -> None:
     X = np.random.default_rng(m).standard_normal((3, m, m + 7))
     A = X @ X.transpose(0, 2, 1) + np.eye(m)
-    inverse = spd_inverse(A.copy())
+    R = inverse_cholesky_factors(A.copy())
     # stated tolerance: 1e-12 relative (two float64 factorizations of a matrix >= I)
+    inverse = np.linalg.inv(A)
     np.testing.assert_allclose(
-        inverse, np.linalg.inv(A), rtol=0, atol=1e-12 * np.abs(inverse).max()
+        R.transpose(0, 2, 1) @ R, inverse, rtol=0, atol=1e-12 * np.abs(inverse).max()
     )
-    np.testing.assert_allclose(inverse, inverse.transpose(0, 2, 1), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(np.triu(R, 1), 0.0)  # lower triangular
+    np.testing.assert_allclose(
+        R, np.linalg.inv(np.linalg.cholesky(A)), rtol=0, atol=1e-12 * np.abs(R).max()
+    )
 
 
-def test_the_spd_inverse_refuses_an_indefinite_matrix() -> None:
-    A = np.tile(np.eye(130), (2, 1, 1))
+@pytest.mark.parametrize("m", [5, 130])
+def test_the_inverse_cholesky_factor_refuses_an_indefinite_matrix(m: int) -> None:
+    A = np.tile(np.eye(m), (2, 1, 1))
     A[1, 0, 0] = -1.0
-    with pytest.raises(np.linalg.LinAlgError, match="matrix 1"):
-        spd_inverse(A)
+    with pytest.raises(np.linalg.LinAlgError):
+        inverse_cholesky_factors(A)
+
+
+def test_flat_returns_are_the_per_leaf_list() -> None:
+    g = LatticeGeometry(3, 4, 1, 3, 0.2)
+    tables = lattice_tables(g, HP)
+    rng = np.random.default_rng(4)
+    hits, frees = _counts(rng, 5, g.n_halo)
+    X = g.halo_centres()
+    points = []
+    for j in range(5):  # leaf 2 holds no return
+        occupied = np.flatnonzero(hits[j]) if j != 2 else np.zeros(0, dtype=np.int64)
+        jitter = rng.uniform(-0.1, 0.1, (occupied.size, 3))
+        points.append((X[occupied] + jitter, hits[j, occupied].astype(float)))
+    flat = Returns.from_list(points, 3)
+    np.testing.assert_array_equal(flat.counts, [p.shape[0] for p, _ in points])
+    np.testing.assert_array_equal(flat.leaves(2, 4).points, np.concatenate([points[3][0]]))
+    a = lattice_posterior(tables, hits, frees, 0.3, points)
+    b = lattice_posterior(tables, hits, frees, 0.3, flat)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
 
 
 def test_small_chunks_give_the_same_posterior(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -203,3 +229,33 @@ def test_returns_at_their_positions_are_the_dtc_written_out() -> None:
     b = lattice_posterior(tables, hits, frees, 0.3)
     np.testing.assert_allclose(a[0], b[0], atol=1e-9)
     np.testing.assert_allclose(a[1], b[1], atol=1e-9)
+
+
+@pytest.mark.parametrize("prune", [True, False])
+def test_fitted_leaves_are_with_values_row_by_row(prune: bool) -> None:
+    from octolgp.engines.base import fitted_leaves, with_values
+    from octolgp.engines.lattice import LatticeEvidence
+    from octolgp.mapping.store import Leaf
+
+    rng = np.random.default_rng(2)
+    n, v = 6, 64
+    prob = rng.uniform(0.2, 0.8, (n, v))
+    prob[1] = rng.uniform(0.0, 0.1, v)  # confidently free: pruned
+    prob[2] = rng.uniform(0.98, 1.0, v)  # confidently occupied: pruned
+    prob[3, 0] = 0.5  # one doubtful voxel: kept
+    prob[3, 1:] = 0.01
+    mean, var = rng.standard_normal((n, v)), rng.uniform(0.1, 2.0, (n, v))
+    leaves = [Leaf(np.array([j, 0, 0]), LatticeEvidence.empty(3), refits=j) for j in range(n)]
+    fast = fitted_leaves(leaves, mean, var, prob, prune)
+    for j, leaf in enumerate(leaves):
+        ref = with_values(leaf, mean[j], var[j], prob[j], prune)
+        assert fast[j].pruned == ref.pruned
+        assert fast[j].refits == ref.refits
+        for name in ("mean", "var", "prob"):
+            a, b = getattr(fast[j], name), getattr(ref, name)
+            assert a.dtype == b.dtype == np.float32
+            np.testing.assert_array_equal(a, b)
+            assert a.base is None  # owns its values
+    assert [f.pruned for f in fast] == (
+        [False, True, True, False, False, False] if prune else [False] * n
+    )

@@ -28,13 +28,20 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.config import Hyperparameters, MapConfig
-from octolgp.engines.base import Evidence, LeafFit, Lookup, read_arrays, stage, with_values
+from octolgp.engines.base import (
+    Evidence,
+    LeafFit,
+    Lookup,
+    fitted_leaves,
+    read_arrays,
+    stage,
+)
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import pack_keys, unpack_keys
 from octolgp.gp.lattice import (
-    HitPoints,
     LatticeGeometry,
     LatticeTables,
+    Returns,
     inducing_per_axis,
     lattice_posterior,
     lattice_tables,
@@ -217,7 +224,7 @@ def map_tables(config: MapConfig, hp: Hyperparameters) -> LatticeTables:
     return lattice_tables(lattice_geometry(config, hp), hp)
 
 
-def return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: int) -> HitPoints:
+def return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: int) -> Returns:
     """Each leaf's kept returns relative to its lower corner (metres), with their weights.
 
     A voxel seen occupied contributes its kept return, weighing ``min(counts[0, v],
@@ -225,18 +232,19 @@ def return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: int) -> HitP
     """
     box, halo, d = grid.side + 2 * grid.halo_voxels, grid.halo_voxels, grid.dim
     evidence = [lattice_evidence(leaf) for leaf in leaves]
-    n_kept = np.array([ev.hit_keys.size for ev in evidence])
+    n_kept = np.array([ev.hit_keys.size for ev in evidence], dtype=np.int64)
+    if not n_kept.sum():
+        return Returns(np.zeros((0, d)), np.zeros(0), n_kept)
     index = np.stack([leaf.index for leaf in leaves])
     owner = np.repeat(np.arange(len(leaves)), n_kept)
     keys = np.concatenate([ev.hit_keys for ev in evidence])
-    local = unpack_keys(keys, d) - (index[owner] * grid.side - halo)
-    flat = local @ (box ** np.arange(d, dtype=np.int64))
-    counts = np.concatenate([ev.counts[0] for ev in evidence]).reshape(len(leaves), -1)
+    corner = index[owner] * grid.side - halo
+    flat = (unpack_keys(keys, d) - corner) @ (box ** np.arange(d, dtype=np.int64))
+    counts = np.stack([ev.counts[0] for ev in evidence])
     weights = np.minimum(counts[owner, flat], evidence_cap).astype(np.float64)
     lo, _ = grid.box(index)
     pos = np.concatenate([ev.hits for ev in evidence]) - lo[owner]
-    cuts = np.cumsum(n_kept)[:-1]
-    return list(zip(np.split(pos, cuts), np.split(weights, cuts), strict=True))
+    return Returns(pos, weights, n_kept)
 
 
 def fit_lattice_leaves(
@@ -265,20 +273,19 @@ def fit_lattice_leaves(
     points = return_points(leaves, LeafGrid.from_config(config), lc.evidence_cap)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    parts = [(hits[lo:hi], frees[lo:hi], points[lo:hi]) for lo, hi in itertools.pairwise(bounds)]
+    parts = [
+        (hits[lo:hi], frees[lo:hi], points.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)
+    ]
 
-    def run(part: tuple[np.ndarray, np.ndarray, HitPoints]) -> tuple[np.ndarray, np.ndarray]:
+    def run(part: tuple[np.ndarray, np.ndarray, Returns]) -> tuple[np.ndarray, np.ndarray]:
         return lattice_posterior(tables, part[0], part[1], lc.free_weight, part[2])
 
     results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
     mean = np.concatenate([r[0] for r in results])
     var = np.concatenate([r[1] for r in results])
     prob = latent_occupancy(mean, var, hp)
-    prune = config.online.prune
-    return [
-        LeafFit(with_values(leaf, mean[j], var[j], prob[j], prune), 0)
-        for j, leaf in enumerate(leaves)
-    ]
+    fitted = fitted_leaves(leaves, mean, var, prob, config.online.prune)
+    return [LeafFit(leaf, 0) for leaf in fitted]
 
 
 class LatticeEngine:
