@@ -4,7 +4,10 @@ The training data of the lattice leaf engine (:mod:`octolgp.gp.lattice`), the
 voxel-level form of :mod:`octolgp.training`'s rule: a beam's hit is an observation
 "occupied" of the voxel holding it; its free segment (stopping ``free_margin`` short of
 the hit, or at ``max_range`` for a no-return) is an observation "free" of every voxel
-it passes through, sampled every half voxel along the segment and at its end.
+it passes through: every voxel the closed segment from the sensor to the segment's end
+meets, the voxels of :func:`octolgp.geometry.raycast.traverse_voxels` (OctoMap's
+``computeRayKeys``) and the end's own voxel, found exactly by the segment's border
+crossings.
 
 Within one scan each voxel counts once per class, and a voxel holding a return of
 the scan is not also free in that scan (OctoMap's discretised insertion). Across
@@ -39,11 +42,19 @@ from octolgp.geometry.keys import KEY_BITS, pack_keys, unpack_keys
 from octolgp.scan import Scan
 from octolgp.training import IntArray, check_scans, split_beams, stack_beams
 
-SAMPLES_PER_VOXEL = 2
-"""Points sampled per voxel edge along a free segment."""
+BLOCK_VOXELS = 1 << 18
+"""Voxels of free segments (their origins' and one per border crossing) handled at once
+(bounds the transient arrays)."""
 
-BLOCK_SAMPLES = 1 << 21
-"""Free-segment sample points handled at once (bounds the transient arrays)."""
+DENSE_CELLS = 1 << 25
+"""Most cells of the per-scan key boxes deduplicated in a dense map (two bytes each)
+rather than by sorting."""
+
+DENSE_PER_VOXEL = 64
+"""... and most of those cells per voxel visited (a sparse box sorts faster)."""
+
+TIE_BAND = 1e-7
+"""Distance, in voxels, from a border within which a crossing's order is decided exactly."""
 
 MAX_SCANS = 1 << 12
 """Scans whose observations are deduplicated in one pass (the scan number shares an
@@ -141,6 +152,101 @@ def _scan_codes(packed: IntArray, scan: IntArray, dim: int) -> IntArray:
     return out
 
 
+def _box_codes(
+    cell: IntArray, base: IntArray, stride: IntArray, low: IntArray, scans: IntArray, dim: int
+) -> IntArray:
+    """(scan, voxel) codes of cells of per-scan key boxes laid end to end.
+
+    Parameters
+    ----------
+    cell : ndarray of int64, shape (m,)
+        Cells, ascending, each below ``DENSE_CELLS``.
+    base : ndarray of int64, shape (s,)
+        Each scan's first cell, ascending.
+    stride : ndarray of int64, shape (s, d)
+        Cells per step along each axis in each scan's box (1 along the first axis).
+    low : ndarray of int64, shape (s, d)
+        Each box's least key per axis.
+    scans : ndarray of int64, shape (s,)
+        The boxes' scan numbers.
+    dim : int
+
+    Returns
+    -------
+    ndarray of int64, shape (m,)
+        The codes, ascending.
+    """
+    first = np.searchsorted(cell, base)
+    s = np.repeat(np.arange(base.size), np.diff(np.r_[first, cell.size]))
+    shift = KEY_BITS * np.arange(dim)
+    corner = (scans << (KEY_BITS * dim)) | (low << shift).sum(axis=1)
+    code = corner[s]
+    # exact in float64: cells and strides are integers below 2**25 (DENSE_CELLS)
+    local = (cell - base[s]).astype(float)
+    for a in range(dim - 1, 0, -1):  # one pass per axis, the slowest first
+        step = stride[:, a].astype(float)[s]
+        along = np.floor(local / step)
+        local -= along * step
+        code += along.astype(np.int64) << shift[a]
+    out: IntArray = code + local.astype(np.int64)
+    return out
+
+
+def _steps_before(
+    t: np.ndarray,
+    seg: IntArray,
+    a: int,
+    b: int,
+    crossings: IntArray,
+    frac: np.ndarray,
+    du: np.ndarray,
+    gap: np.ndarray,
+) -> np.ndarray:
+    """Signed steps along axis ``b`` before each crossing of axis ``a`` (``a != b``).
+
+    A crossing of ``b`` comes first if its ``t`` is smaller, or equal and ``b > a``.
+
+    Parameters
+    ----------
+    t : ndarray of shape (c,)
+        The crossings of ``a``: parameter along their segment, 0 at its origin, 1 at
+        its end.
+    seg : ndarray of int64, shape (c,)
+        Their segments.
+    a, b : int
+        The axes.
+    crossings : ndarray of int64, shape (b,)
+        Per segment, borders of ``b`` crossed.
+    frac, du : ndarray of shape (b,)
+        Per segment, along ``b`` in voxels: the origin's offset in its voxel, in
+        ``[0, 1)``, and the change from origin to end.
+    gap : ndarray of shape (b,)
+        Per segment, ``t`` of the ``i``-th border of ``b`` times ``|du|``, less ``i``.
+
+    Returns
+    -------
+    ndarray of float, shape (c,)
+        Whole numbers: the key change along ``b`` from the origin's voxel.
+    """
+    w = frac[seg] + t * du[seg]  # along b, in voxels from the origin voxel's low border
+    steps: np.ndarray = np.floor(w)
+    r = w - steps
+    close = np.flatnonzero((r < TIE_BAND) | (r > 1.0 - TIE_BAND))
+    if close.size:  # near a border of b: compare the two crossings' t
+        s = seg[close]
+        nearest = np.rint(w[close])
+        forward = du[s] > 0
+        j = np.where(forward, nearest, 1.0 - nearest)  # that border's number along b
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_b = (j - gap[s]) / np.abs(du[s])
+        t_a = t[close]
+        first = (t_b < t_a) | ((t_b == t_a) & (b > a))
+        first &= (j >= 1) & (j <= crossings[s])
+        count = np.clip(j - 1 + first, 0, crossings[s])
+        steps[close] = np.where(forward, count, -count)
+    return steps
+
+
 def _free_codes(
     origins: np.ndarray,
     free_end: np.ndarray,
@@ -151,46 +257,130 @@ def _free_codes(
 ) -> tuple[IntArray, IntArray]:
     """Unique (scan, voxel) codes of the voxels the free segments pass through.
 
-    Returns every such code, and those seen only by samples within ``near[b]`` metres of
-    their segment's end (per segment; ``None``: none).
+    A segment's voxels are every voxel the closed segment from its origin to its end
+    passes through: those of :func:`octolgp.geometry.raycast.traverse_voxels` (OctoMap's
+    ``computeRayKeys``) and the end's own voxel. Per axis a segment crosses
+    ``|floor(end / r) - floor(origin / r)|`` voxel borders; the ``i``-th at parameter
+    ``t = (i - g) / |Δu|`` (``u`` the coordinate in voxels, ``g`` the origin's distance
+    to the first border, ``t`` 0 at the origin and 1 at the end). Its voxels are the
+    origin's and, per crossing, the voxel it enters: on the crossing's axis one step
+    further, on each other axis the voxel the segment is in at that ``t``. Crossings at
+    equal ``t`` (through an edge or corner) go in traverse_voxels' order, the last axis
+    first; a crossing within ``TIE_BAND`` voxels of another axis's border has its order
+    decided on the computed ``t`` of both, so the voxels always form one face-connected
+    path from the origin's voxel to the end's.
+
+    Parameters
+    ----------
+    origins, free_end : ndarray of shape (b, d)
+        Segment starts and ends, world frame, metres (addressable).
+    scan : ndarray of int64, shape (b,)
+        Each segment's scan number, ``0 <= scan < MAX_SCANS``.
+    resolution : float
+        Voxel edge, metres.
+    tree_depth : int
+        OctoMap key depth.
+    near : ndarray of shape (b,), optional
+        Per segment, metres before its end (``inf``: all of it).
+
+    Returns
+    -------
+    codes : ndarray of int64, shape (m,)
+        Every (scan, voxel) code a segment passes through, ascending.
+    near_only : ndarray of int64, shape (k,)
+        Those whose every segment of that scan is within ``near`` of its end inside
+        the voxel: the segment enters the voxel at ``t >= 1 - near / length``
+        (``length`` the segment's, metres). Empty where ``near`` is None.
     """
-    dim = origins.shape[1]
-    step = resolution / SAMPLES_PER_VOXEL
-    seg_len = np.linalg.norm(free_end - origins, axis=1)
-    n_samples = np.floor(seg_len / step).astype(np.int64) + 2  # every step, and the end
-    # per axis, in voxels: start and change per metre along the segment
-    start = origins / resolution
-    slope = (free_end - origins) / (resolution * np.maximum(seg_len, 1e-300))[:, None]
+    none = np.zeros(0, dtype=np.int64)
+    n_seg, dim = origins.shape
+    if n_seg == 0:
+        return none, none
+    u0 = origins / resolution  # coordinates in voxels
+    k0 = np.floor(u0)
+    k1 = np.floor(free_end / resolution)
+    du = free_end / resolution - u0
+    crossings = np.abs(k1 - k0).astype(np.int64)  # (b, d) borders crossed per axis
+    frac = u0 - k0
+    step = np.where(du < 0, -1, 1)
+    gap = np.where(du < 0, 1.0 - frac, frac)  # border i of an axis at t = (i - gap) / |du|
     offset = 1 << (tree_depth - 1)
+    key0 = k0.astype(np.int64) + offset
+    scans, which = np.unique(scan, return_inverse=True)
+    low = np.full((scans.size, dim), np.iinfo(np.int64).max)
+    high = np.full((scans.size, dim), np.iinfo(np.int64).min)
+    np.minimum.at(low, which, np.minimum(key0, k1.astype(np.int64) + offset))
+    np.maximum.at(high, which, np.maximum(key0, k1.astype(np.int64) + offset))
+    extent = high - low + 1  # (s, d) each scan's box of keys
+    cells = np.prod(extent, axis=1)
+    per_seg = crossings.sum(axis=1) + 1  # voxels per segment
+    dense = bool(cells.sum() <= min(DENSE_CELLS, DENSE_PER_VOXEL * int(per_seg.sum())))
+    if dense:  # an index into the scans' boxes laid end to end, ascending as the codes
+        base = np.cumsum(cells) - cells
+        box_stride = np.cumprod(np.c_[np.ones(scans.size, np.int64), extent[:, :-1]], axis=1)
+        stride = box_stride[which]
+        start = base[which] + ((key0 - low[which]) * stride).sum(axis=1)
+    else:  # the codes themselves
+        stride = np.broadcast_to(np.int64(1) << (KEY_BITS * np.arange(dim)), (n_seg, dim))
+        start = (scan << (KEY_BITS * dim)) | (key0 << (KEY_BITS * np.arange(dim))).sum(axis=1)
+    if near is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            enter_near = 1.0 - near / np.linalg.norm(free_end - origins, axis=1)
+    columns = [
+        [np.ascontiguousarray(x[:, a]) for a in range(dim)]
+        for x in (crossings, frac, du, np.abs(du), gap, (step * stride).astype(float))
+    ]
+    n_c, frac_c, du_c, size_c, gap_c, move_c = columns
+    stride_c = [np.ascontiguousarray(stride[:, a]).astype(float) for a in range(dim)]
+    far_map = np.zeros(int(cells.sum()) if dense else 0, dtype=bool)
+    near_map = np.zeros(far_map.size if near is not None else 0, dtype=bool)
     parts: list[IntArray] = []
     near_parts: list[IntArray] = []
-    ends = np.cumsum(n_samples)
+    ends = np.cumsum(per_seg)
     lo = 0
-    while lo < seg_len.size:  # blocks of about BLOCK_SAMPLES samples
-        hi = int(np.searchsorted(ends, ends[lo] - n_samples[lo] + BLOCK_SAMPLES, side="right"))
+    while lo < n_seg:  # blocks of about BLOCK_VOXELS voxels
+        hi = int(np.searchsorted(ends, ends[lo] - per_seg[lo] + BLOCK_VOXELS, side="right"))
         hi = max(hi, lo + 1)
-        counts = n_samples[lo:hi]
-        beam = np.repeat(np.arange(lo, hi), counts)
-        first = np.cumsum(counts) - counts
-        j = np.arange(beam.size) - np.repeat(first, counts)
-        dist = np.minimum(j * step, seg_len[beam])  # metres along the segment
-        codes = scan[beam] << (KEY_BITS * dim)
-        for axis in range(dim):  # per axis: floor of the coordinate in voxels, packed
-            u = start[beam, axis] + slope[beam, axis] * dist
-            codes |= (np.floor(u).astype(np.int64) + offset) << (KEY_BITS * axis)
+        index = [start[lo:hi]]  # each segment's origin voxel, entered at t = 0
+        t_in = [np.zeros(hi - lo)]
+        owner = [np.arange(lo, hi)]
+        for a in range(dim):  # the crossings of axis a
+            counts = n_c[a][lo:hi]
+            total = int(counts.sum())
+            if total == 0:
+                continue
+            seg = np.repeat(np.arange(lo, hi), counts)
+            i = np.arange(1, total + 1) - np.repeat(np.cumsum(counts) - counts, counts)
+            t = (i - gap_c[a][seg]) / size_c[a][seg]
+            moved = i * move_c[a][seg]  # index change from the origin's voxel
+            for b in range(dim):  # the other axes: their voxel at t
+                if b != a:
+                    steps = _steps_before(t, seg, a, b, n_c[b], frac_c[b], du_c[b], gap_c[b])
+                    moved += steps * stride_c[b][seg]
+            index.append(start[seg] + moved.astype(np.int64))
+            t_in.append(t)
+            owner.append(seg)
+        idx = np.concatenate(index)
         if near is not None:
-            close = seg_len[beam] - dist < near[beam]
-            near_parts.append(sorted_unique(codes[close]))
-            codes = codes[~close]
-        keep = np.empty(codes.size, dtype=bool)  # consecutive samples in one voxel
-        if codes.size:
-            keep[0] = True
-        np.not_equal(codes[1:], codes[:-1], out=keep[1:])
-        parts.append(sorted_unique(codes[keep]))
+            is_near = np.concatenate(t_in) >= enter_near[np.concatenate(owner)]
+            if dense:
+                near_map[idx[is_near]] = True
+            else:
+                near_parts.append(sorted_unique(idx[is_near]))
+            idx = idx[~is_near]
+        if dense:
+            far_map[idx] = True
+        else:
+            parts.append(sorted_unique(idx))
         lo = hi
-    none = np.zeros(0, dtype=np.int64)
-    far = sorted_unique(np.concatenate(parts)) if parts else none
-    if not near_parts:
+    if dense:
+        cell = np.flatnonzero(far_map | near_map if near is not None else far_map)
+        codes = _box_codes(cell, base, box_stride, low, scans, dim)
+        if near is None:
+            return codes, none
+        return codes, codes[near_map[cell] & ~far_map[cell]]
+    far = sorted_unique(np.concatenate(parts))
+    if near is None:
         return far, none
     close_codes = sorted_unique(np.concatenate(near_parts))
     only = close_codes[~np.isin(close_codes, far, assume_unique=True)]

@@ -7,6 +7,7 @@ import pytest
 
 from octolgp import LatticeConfig, MapConfig, Scan
 from octolgp.engines.lattice import LatticeEvidence
+from octolgp.geometry.raycast import traverse_voxels
 from octolgp.observations import advance, merge_observations, newer_evidence_wins, observe
 
 
@@ -14,6 +15,9 @@ def _brute_force(
     scans: list[Scan], config: MapConfig, first: dict[tuple[int, ...], np.ndarray] | None = None
 ) -> dict[tuple[int, ...], list[int]]:
     """Per voxel [scans with a hit, scans with free and no hit], one beam at a time.
+
+    A beam's free voxels are those of OctoMap's ray traversal (``traverse_voxels``) from
+    the sensor to its free segment's end, and the end's own voxel.
 
     ``first`` receives each voxel's first return.
     """
@@ -37,11 +41,10 @@ def _brute_force(
             if length <= 1e-9:
                 continue
             end = scan.origin + u * length
-            n = int(np.floor(length / (res / 2))) + 2
-            for j in range(n):
-                t = min(j * res / 2, length) / length
-                q = scan.origin + (end - scan.origin) * t
-                free_vox.add(tuple(int(v) for v in np.floor(q / res).astype(int) + off))
+            # every voxel the segment passes through: the traversal, and the end's own
+            _, keys = traverse_voxels(scan.origin[None], end[None], res, config.tree_depth)
+            free_vox.update(tuple(int(v) for v in k) for k in keys)
+            free_vox.add(tuple(int(v) for v in np.floor(end / res).astype(int) + off))
         for v in hit_vox:
             counts.setdefault(v, [0, 0])[0] += 1
         for v in free_vox - hit_vox:
