@@ -259,3 +259,60 @@ def test_fitted_leaves_are_with_values_row_by_row(prune: bool) -> None:
     assert [f.pruned for f in fast] == (
         [False, True, True, False, False, False] if prune else [False] * n
     )
+
+
+def _room_observations() -> tuple[object, object]:
+    from octolgp import MapConfig, Scan
+    from octolgp.observations import observe
+
+    rng = np.random.default_rng(8)
+    config = MapConfig(dim=3, resolution=0.2)
+    scans = []
+    for _ in range(3):
+        ends = rng.uniform(-3.0, 3.0, (400, 3))
+        scans.append(Scan(origin=rng.uniform(-0.5, 0.5, 3), points=ends, max_range=10.0))
+    return observe(scans, config), config
+
+
+def test_advancing_each_voxel_once_is_advancing_every_copy() -> None:
+    from octolgp.engines.lattice import advance_copies, halo_copies
+    from octolgp.mapping.grid import LeafGrid
+    from octolgp.observations import advance
+
+    obs, config = _room_observations()
+    voxel, _, _ = halo_copies(obs, LeafGrid.from_config(config))
+    rng = np.random.default_rng(3)
+    per_voxel = rng.integers(0, 3, (2, obs.n_voxels))
+    for hits, frees in (
+        (per_voxel[0][voxel], per_voxel[1][voxel]),  # copies agree: once per voxel
+        (rng.integers(0, 3, voxel.size), rng.integers(0, 3, voxel.size)),  # they differ
+    ):
+        a = advance_copies(hits, frees, obs, voxel, 1)
+        b = advance(hits, frees, obs, voxel, 1)
+        for name in ("hits", "frees", "position", "replace", "drop"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
+def test_halo_copies_are_every_leaf_whose_halo_box_holds_the_voxel() -> None:
+    from octolgp.engines.lattice import halo_copies
+    from octolgp.geometry.keys import unpack_keys
+    from octolgp.mapping.grid import LeafGrid
+
+    obs, config = _room_observations()
+    grid = LeafGrid.from_config(config)
+    voxel, leaf_key, flat = halo_copies(obs, grid)
+    side, halo, box = grid.side, grid.halo_voxels, grid.side + 2 * grid.halo_voxels
+    leaf = unpack_keys(leaf_key, 3)
+    local = obs.keys[voxel] - (leaf * side - halo)
+    assert ((local >= 0) & (local < box)).all()
+    np.testing.assert_array_equal(flat, local @ (box ** np.arange(3)))
+    # brute force: per voxel, every leaf within one leaf of its own whose halo box holds it
+    expected = set()
+    for v, key in enumerate(obs.keys):
+        own = key // side
+        for off in np.ndindex(3, 3, 3):
+            cand = own + np.array(off) - 1
+            lo = cand * side - halo
+            if ((key >= lo) & (key < lo + box)).all():
+                expected.add((v, tuple(cand)))
+    assert {(int(v), tuple(map(int, q))) for v, q in zip(voxel, leaf, strict=True)} == expected

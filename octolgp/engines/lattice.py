@@ -37,7 +37,7 @@ from octolgp.engines.base import (
     stage,
 )
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import pack_keys, unpack_keys
+from octolgp.geometry.keys import KEY_BITS, pack_keys, unpack_keys
 from octolgp.gp.lattice import (
     LatticeGeometry,
     LatticeTables,
@@ -49,7 +49,13 @@ from octolgp.gp.lattice import (
 from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
-from octolgp.observations import VoxelObservations, advance, effective_counts, observe
+from octolgp.observations import (
+    VoxelObservations,
+    VoxelState,
+    advance,
+    effective_counts,
+    observe,
+)
 from octolgp.scan import FloatArray, Scan
 from octolgp.training import IntArray
 
@@ -99,29 +105,117 @@ def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
     return ev
 
 
-def _halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntArray, IntArray]:
+def halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntArray, IntArray]:
     """Every (observed voxel, leaf whose halo box holds it) pair.
 
-    Returns the voxel (index into ``obs``), the leaf index per axis and the voxel's flat
-    index in that leaf's halo box, per pair.
+    Returns the voxel (index into ``obs``), the leaf's packed key and the voxel's flat
+    index in that leaf's halo box, per pair; pairs are grouped by the neighbour offset.
     """
     side, halo, d = grid.side, grid.halo_voxels, grid.dim
     box = side + 2 * halo
-    keys = obs.keys
-    lo = (keys - halo) // side
-    hi = (keys + halo) // side
-    vox_parts, leaf_parts = [], []
+    n_leaf = 1 << grid.leaf_depth
+    cols = [np.ascontiguousarray(obs.keys[:, a]) for a in range(d)]
+    lo = [(c - halo) // side for c in cols]  # the lower leaf per axis
+    # per axis: whether the lower and the upper leaf (lo + 1) hold the voxel in their halo
+    has = [
+        ((q >= 0) & (q < n_leaf), ((c + halo) // side > q) & (q + 1 < n_leaf))
+        for c, q in zip(cols, lo, strict=True)
+    ]
+    vox_parts, leaf_parts, flat_parts = [], [], []
     for offset in itertools.product((0, 1), repeat=d):  # 4 or 8 neighbours
-        cand = lo + np.asarray(offset, dtype=np.int64)
-        ok = (cand <= hi).all(axis=1) & (cand >= 0).all(axis=1)
-        ok &= (cand < (1 << grid.leaf_depth)).all(axis=1)
-        vox_parts.append(np.flatnonzero(ok))
-        leaf_parts.append(cand[ok])
-    voxel = np.concatenate(vox_parts)
-    leaf_index = np.concatenate(leaf_parts)
-    local = keys[voxel] - (leaf_index * side - halo)
-    flat = local @ (box ** np.arange(d, dtype=np.int64))
-    return voxel, leaf_index, flat
+        ok = has[0][offset[0]]
+        for a in range(1, d):
+            ok = ok & has[a][offset[a]]
+        v = np.flatnonzero(ok)
+        packed = np.zeros(v.size, dtype=np.int64)
+        flat = np.zeros(v.size, dtype=np.int64)
+        for a in range(d):  # per axis: the leaf index, packed, and the offset in its box
+            leaf = lo[a][v] + offset[a]
+            packed |= leaf << (KEY_BITS * a)
+            flat += (cols[a][v] - (leaf * side - halo)) * box**a
+        vox_parts.append(v)
+        leaf_parts.append(packed)
+        flat_parts.append(flat)
+    return np.concatenate(vox_parts), np.concatenate(leaf_parts), np.concatenate(flat_parts)
+
+
+def _moved_returns(
+    leaves: list[Leaf | None],
+    owner: IntArray,
+    voxel: IntArray,
+    drop: NDArray[np.bool_],
+    replace: NDArray[np.bool_],
+    position: FloatArray,
+    packed_voxels: IntArray,
+    dim: int,
+) -> dict[int, tuple[IntArray, FloatArray]]:
+    """The kept returns of the leaves where some are new or forgotten, in voxel-key order.
+
+    Parameters
+    ----------
+    leaves : list of Leaf or None
+        The touched leaves (``None``: new).
+    owner, voxel : ndarray of int64, shape (p,)
+        Per (voxel, leaf) pair whose return moves: the leaf (index into ``leaves``) and
+        the voxel (index into ``packed_voxels``).
+    drop, replace : ndarray of bool, shape (p,)
+        The pair's kept return is forgotten; it becomes ``position``.
+    position : ndarray of shape (p, d)
+    packed_voxels : ndarray of int64, shape (n,)
+        The step's observed voxels, ascending.
+    dim : int
+
+    Returns
+    -------
+    dict
+        Per such leaf (index into ``leaves``): its kept returns' packed keys (ascending)
+        and positions, arrays of its own.
+    """
+    js = np.unique(owner)
+    evidence = [None if leaves[j] is None else lattice_evidence(leaves[j]) for j in js.tolist()]
+    old_n = np.array([0 if ev is None else ev.hit_keys.size for ev in evidence], dtype=np.int64)
+    none_k, none_h = np.zeros(0, np.int64), np.zeros((0, dim))
+    old_keys = np.concatenate([none_k, *(ev.hit_keys for ev in evidence if ev is not None)])
+    old_pos = np.concatenate([none_h, *(ev.hits for ev in evidence if ev is not None)])
+    old_owner = np.repeat(js, old_n)
+    # a (leaf, voxel) code per old return and per forgotten one: the voxel by its rank
+    n = packed_voxels.size
+    rank = np.minimum(np.searchsorted(packed_voxels, old_keys), max(n - 1, 0))
+    seen = packed_voxels[rank] == old_keys if n else np.zeros(old_keys.size, dtype=bool)
+    old_code = np.where(seen, old_owner * n + rank, -1)
+    gone = np.isin(old_code, owner[drop] * n + voxel[drop])
+    add = np.flatnonzero(replace)
+    keys = np.concatenate([old_keys[~gone], packed_voxels[voxel[add]]])
+    pos = np.concatenate([old_pos[~gone], position[add]])
+    who = np.concatenate([old_owner[~gone], owner[add]])
+    order = np.lexsort((keys, who))  # by leaf, then voxel key
+    keys, pos, who = keys[order], pos[order], who[order]
+    bounds = np.searchsorted(who, np.r_[js, js[-1] + 1] if js.size else js)
+    return {
+        j: (keys[lo:hi].copy(), pos[lo:hi].copy())
+        for j, lo, hi in zip(js.tolist(), bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
+    }
+
+
+def advance_copies(
+    hits: IntArray, frees: IntArray, obs: VoxelObservations, voxel: IntArray, cap: int
+) -> VoxelState:
+    """:func:`octolgp.observations.advance` of every (voxel, leaf) copy, once per voxel.
+
+    Every copy of a voxel holds the same state (each observation reaches all its
+    copies), so the rule runs once per observed voxel and its result is shared; should
+    the copies of a voxel ever differ, it runs on every copy instead.
+    """
+    n = obs.n_voxels
+    rep = np.zeros(n, dtype=np.int64)
+    rep[voxel] = np.arange(voxel.size)  # one copy of each voxel (none: unused)
+    h, f = hits[rep], frees[rep]
+    if not (np.array_equal(h[voxel], hits) and np.array_equal(f[voxel], frees)):
+        return advance(hits, frees, obs, voxel, cap)
+    one = advance(h, f, obs, np.arange(n), cap)
+    return VoxelState(
+        one.hits[voxel], one.frees[voxel], one.position[voxel], one.replace[voxel], one.drop[voxel]
+    )
 
 
 def gather_observations(
@@ -147,10 +241,9 @@ def gather_observations(
     Evidence
         ``new_items`` counts the (voxel, class) inputs of leaf GPs that changed.
     """
-    voxel, leaf_index, flat = _halo_copies(obs, grid)
-    touched, first, inverse = np.unique(
-        pack_keys(leaf_index), return_index=True, return_inverse=True
-    )
+    voxel, leaf_key, flat = halo_copies(obs, grid)
+    touched = np.unique(leaf_key)  # hashed: faster than sorting every pair
+    inverse = np.searchsorted(touched, leaf_key)
     n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
     old = np.zeros((touched.size, 2, n_halo), dtype=np.uint8)
     current: list[Leaf | None] = []
@@ -161,12 +254,15 @@ def gather_observations(
         if counts is not None and counts.shape[1] == n_halo:
             old[j] = counts
     cap = config.lattice.evidence_cap
-    before_h = old[inverse, 0, flat].astype(np.int64)
-    before_f = old[inverse, 1, flat].astype(np.int64)
-    state = advance(before_h, before_f, obs, voxel, cap)
+    at_h = inverse * (2 * n_halo) + flat  # each pair's return count in old.ravel()
+    flat_old = old.reshape(-1)
+    before_h = flat_old[at_h].astype(np.int64)
+    before_f = flat_old[at_h + n_halo].astype(np.int64)
+    state = advance_copies(before_h, before_f, obs, voxel, cap)
     new = old.copy()
-    new[inverse, 0, flat] = state.hits
-    new[inverse, 1, flat] = state.frees
+    flat_new = new.reshape(-1)
+    flat_new[at_h] = state.hits
+    flat_new[at_h + n_halo] = state.frees
     # what the leaf GP sees: its effective counts, and the kept returns
     eh0, ef0 = effective_counts(before_h, before_f, cap, obs.clear_scans)
     eh1, ef1 = effective_counts(state.hits, state.frees, cap, obs.clear_scans)
@@ -174,30 +270,28 @@ def gather_observations(
     moves = state.replace | state.drop
     effective = d_h | d_f | moves
     stored = effective | (state.hits != before_h) | (state.frees != before_f)
-    # the pairs whose return is new or forgotten, grouped by leaf
-    with_move = np.flatnonzero(moves)
-    with_move = with_move[np.argsort(inverse[with_move], kind="stable")]
-    move_bounds = np.searchsorted(inverse[with_move], np.arange(touched.size + 1))
     refit = np.zeros(touched.size, dtype=bool)
     refit[inverse[effective]] = True
-    packed_voxels = pack_keys(obs.keys)
+    mv = np.flatnonzero(moves)
+    returns = _moved_returns(
+        current,
+        inverse[mv],
+        voxel[mv],
+        state.drop[mv],
+        state.replace[mv],
+        state.position[mv],
+        pack_keys(obs.keys),
+        grid.dim,
+    )
     changed: list[tuple[int, Leaf]] = []
     kept: list[tuple[int, Leaf]] = []
+    touched_index = unpack_keys(touched, grid.dim)
     for j in np.unique(inverse[stored]).tolist():  # one iteration per leaf with new counts
         leaf = current[j]
         if leaf is None:
-            index = np.asarray(leaf_index[first[j]], dtype=np.int64).copy()
-            leaf = Leaf(index, LatticeEvidence.empty(grid.dim))
+            leaf = Leaf(touched_index[j].copy(), LatticeEvidence.empty(grid.dim))
         ev = lattice_evidence(leaf)
-        hit_keys, hits = ev.hit_keys, ev.hits
-        pairs = with_move[move_bounds[j] : move_bounds[j + 1]]
-        if pairs.size:  # kept in voxel-key order, however the scans were grouped
-            gone = np.isin(hit_keys, packed_voxels[voxel[pairs[state.drop[pairs]]]])
-            add = pairs[state.replace[pairs]]
-            keys = np.concatenate([hit_keys[~gone], packed_voxels[voxel[add]]])
-            order = np.argsort(keys, kind="stable")
-            hits = np.concatenate([hits[~gone], state.position[add]])[order]
-            hit_keys = keys[order]
+        hit_keys, hits = returns.get(j, (ev.hit_keys, ev.hits))
         leaf = leaf.evolve(evidence=LatticeEvidence(new[j].copy(), hit_keys, hits))
         (changed if refit[j] else kept).append((int(touched[j]), leaf))
     gained = int(d_h.sum() + d_f.sum())
