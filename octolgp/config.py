@@ -220,17 +220,29 @@ class LearningConfig:
         jointly by the LOO predictive probability, starting from that point; opt-in,
         as on a noise-free scene it drives the signal variance to its bound
         (``BENCHMARKS.md``, "Kim & Kim Table II").
+    model : {"engine", "voxels", "segments"}
+        The observations learnt on (:mod:`octolgp.gp.learning`). ``"voxels"``: each
+        observed voxel a point, the lattice engine's model. ``"segments"``: hits and
+        free segments with integral kernels on the partition's clusters, the exact
+        engine's and the batch map's model. ``"engine"`` (default): the online
+        engine's own, voxels for ``online.engine="lattice"``, segments for
+        ``"exact"``.
     """
 
     max_clusters: int = 8
     max_items_per_cluster: int = 300
     seed: int = 0
     objective: str = "lml"
+    model: str = "engine"
 
     def __post_init__(self) -> None:
         if self.objective not in ("lml+loo", "lml"):
             raise OctolgpError(
                 f"LearningConfig.objective must be 'lml+loo' or 'lml', got {self.objective!r}"
+            )
+        if self.model not in ("engine", "voxels", "segments"):
+            raise OctolgpError(
+                f"LearningConfig.model must be 'engine', 'voxels' or 'segments', got {self.model!r}"
             )
         _integer("LearningConfig", "max_clusters", self.max_clusters, 1)
         _integer("LearningConfig", "max_items_per_cluster", self.max_items_per_cluster, 4)

@@ -6,7 +6,7 @@ The scenes are built here with a slab-method ray caster of their own (not
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -210,8 +210,12 @@ def test_build_map_rejects_bad_arguments(scene2d: Scene) -> None:
 
 
 def test_learned_hyperparameters_are_valid_and_used(scene2d: Scene) -> None:
-    """Learnt kernel values are finite and positive, α > 0; build_map learns the same."""
+    """Learnt kernel values are finite and positive, α > 0; build_map learns the same.
+
+    The batch map learns on its own model, hits and free segments (``model="segments"``).
+    """
     config = _config(scene2d, hp=None)
+    config = replace(config, learning=replace(config.learning, model="segments"))
     hp = learn_hyperparameters(scene2d.scans, config)
     values = np.array([hp.length_scale, hp.signal_variance, hp.noise_variance, hp.alpha])
     assert np.all(np.isfinite(values))

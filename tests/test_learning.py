@@ -63,7 +63,9 @@ def test_learnt_hyperparameters_equal_the_previous_computation(
     """
     scans = _room_scans(8, 90)
     config = MapConfig(
-        dim=2, resolution=0.1, learning=LearningConfig(max_clusters=4, max_items_per_cluster=150)
+        dim=2,
+        resolution=0.1,
+        learning=LearningConfig(max_clusters=4, max_items_per_cluster=150, model="segments"),
     )
     with monkeypatch.context() as m:
         m.setattr(likelihood_module, "covariance_with_grad", _previous)
@@ -117,10 +119,12 @@ def test_covariance_with_grad_memory_is_bounded_by_blocks() -> None:
     assert fresh < outputs + 3 * 8 * kernels_module._CHUNK + 6e6
 
 
-def test_learning_hands_the_freed_heap_back(monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("model", ["voxels", "segments"])
+def test_learning_hands_the_freed_heap_back(monkeypatch: pytest.MonkeyPatch, model: str) -> None:
     calls: list[int] = []
     monkeypatch.setattr(learning_module, "release_free_memory", lambda: calls.append(1))
-    learn_hyperparameters(_room_scans(2, 40), MapConfig(dim=2, resolution=0.1))
+    config = MapConfig(dim=2, resolution=0.1, learning=LearningConfig(model=model))
+    learn_hyperparameters(_room_scans(2, 40), config)
     assert calls == [1]
 
 

@@ -4,15 +4,27 @@ With ``LearningConfig.objective == "lml+loo"`` (opt-in) all five are then refine
 jointly by the LOO predictive probability of PLSC (R&W §6.5, eq. 5.13 gradients).
 
 Length scales learnt on one small subset swing widely with the subset, so the log
-marginal likelihood is summed over several clusters spread over the map, which
-share the hyperparameters (each cluster an independent GP). The node layout of
-the integral kernels is fixed during the optimisation (spacing from the initial
-length scale, ``10 × resolution``) so the objective is smooth.
+marginal likelihood is summed over several sets spread over the map, which share the
+hyperparameters (each set an independent GP). The sets hold one of two observation
+models (``LearningConfig.model``):
+
+- *voxels* (the lattice engine's own model, its default): every observed voxel is a
+  point observation, a voxel seen occupied at its kept return (target +1, noise
+  ``σn² / h`` for ``h`` counted returns), one seen free at its centre (target −1, noise
+  ``σn² / (free_weight f)`` for ``f`` counted free looks); each set is the nearest
+  occupied voxels around a seed and the free voxels within the same radius. Point
+  kernels only: a set of ``n`` items is an ``(n, n)`` matrix.
+- *segments* (the exact engine's and the batch map's): hits and free segments with the
+  integral kernels of :mod:`octolgp.gp.kernels`, on clusters of
+  :func:`octolgp.partition.partition`. The node layout is fixed during the
+  optimisation (spacing from the initial length scale, ``10 × resolution``) so the
+  objective is smooth.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.optimize import minimize
@@ -20,11 +32,13 @@ from threadpoolctl import threadpool_limits
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
+from octolgp.geometry.keys import key_to_coord
 from octolgp.gp.kernels import BlockWorkspace
 from octolgp.gp.likelihood import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.gp.plsc import fit_plsc
-from octolgp.gp.quadrature import QuadratureSet, cluster_items, quadrature_spacing
+from octolgp.gp.quadrature import QuadratureSet, cluster_items, points_set, quadrature_spacing
 from octolgp.memory import release_free_memory
+from octolgp.observations import advance, effective_counts, observe
 from octolgp.partition import Cluster, partition
 from octolgp.scan import FloatArray, Scan
 from octolgp.training import TrainingData, make_training_data
@@ -35,25 +49,56 @@ likelihood otherwise drives ``σn²`` to ~1e-4 on some subsets, the length scale
 and held-out AUC drops (``BENCHMARKS.md``, "Real logs: held-out AUC")."""
 
 
+@dataclass(frozen=True)
+class LearningSet:
+    """One independent GP of the learning objective.
+
+    Attributes
+    ----------
+    items : QuadratureSet
+        ``n`` training items (points, or hits and free segments as quadrature nodes).
+    y : ndarray of shape (n,)
+        Targets: +1 occupied, −1 free.
+    noise_scale : ndarray of shape (n,) or None
+        Per-item factors of the noise variance (``σn² s_i``); ``None``: all ones.
+    """
+
+    items: QuadratureSet
+    y: FloatArray
+    noise_scale: FloatArray | None = None
+
+
+def learning_model(config: MapConfig) -> str:
+    """The observation model the hyperparameters are learnt on: ``"voxels"`` or ``"segments"``.
+
+    ``LearningConfig.model``, where ``"engine"`` is the online engine's own model:
+    voxels for the lattice engine, segments for the exact one.
+    """
+    model = config.learning.model
+    if model == "engine":
+        return "voxels" if config.online.engine == "lattice" else "segments"
+    return model
+
+
 def _subsample(
     data: TrainingData,
     cluster: Cluster,
     config: MapConfig,
     spacing: float,
     rng: np.random.Generator,
-) -> tuple[QuadratureSet, FloatArray]:
+) -> LearningSet:
     """A cluster's items, randomly thinned to ``learning.max_items_per_cluster``."""
     items, y = cluster_items(data, cluster, config, spacing)
     cap = config.learning.max_items_per_cluster
     if y.size <= cap:
-        return items, y
+        return LearningSet(items, y)
     keep = np.sort(rng.choice(y.size, size=cap, replace=False))
-    return items.subset(keep), y[keep]
+    return LearningSet(items.subset(keep), y[keep])
 
 
 def learning_sets(
     data: TrainingData, clusters: list[Cluster], config: MapConfig, spacing: float
-) -> list[tuple[QuadratureSet, FloatArray]]:
+) -> list[LearningSet]:
     """Pick up to ``learning.max_clusters`` clusters spread over the map, thinned."""
     rng = np.random.default_rng(config.learning.seed)
     if not clusters:
@@ -72,12 +117,13 @@ Objective = Callable[[FloatArray], tuple[float, FloatArray]]
 
 def _negated_sum(
     term: Callable[..., tuple[float, FloatArray]],
-    sets: list[tuple[QuadratureSet, FloatArray]],
+    sets: list[LearningSet],
     n_params: int,
     scale: float,
     work: BlockWorkspace | None = None,
+    **options: bool,
 ) -> Objective:
-    """``−scale · Σ term(items, y, x, work)`` and its gradient.
+    """``−scale · Σ term(items, y, x, work, noise_scale, **options)`` and its gradient.
 
     Node distances are recomputed block by block at every evaluation rather than
     kept (the eight sets' ``(N, N)`` matrices took 125 MB on 40 FR079 scans), in
@@ -88,8 +134,8 @@ def _negated_sum(
 
     def objective(x: FloatArray) -> tuple[float, FloatArray]:
         value, grad = 0.0, np.zeros(n_params)
-        for items, y in sets:
-            v, g = term(items, y, x, work)
+        for part in sets:
+            v, g = term(part.items, part.y, x, work, part.noise_scale, **options)
             value += v
             grad += g
         if not np.isfinite(value):
@@ -100,16 +146,18 @@ def _negated_sum(
 
 
 def fit_kernel(
-    sets: list[tuple[QuadratureSet, FloatArray]],
+    sets: list[LearningSet],
     initial: Hyperparameters,
     min_noise_variance: float = 1e-4,
     work: BlockWorkspace | None = None,
+    shifts: tuple[float, ...] = (0.0, float(np.log(3.0))),
 ) -> tuple[float, float, float]:
     """Maximise the summed log marginal likelihood over log-parameters (L-BFGS-B).
 
     The noise variance is kept at or above ``min_noise_variance``
     (the map learns with :data:`MIN_NOISE_VARIANCE`). ``work``: the kernel's node blocks, to
-    reuse.
+    reuse. ``shifts``: the starts, ``initial`` with its log length scale shifted by each;
+    the best optimum wins.
 
     Returns
     -------
@@ -122,7 +170,7 @@ def fit_kernel(
     bounds = [(np.log(1e-2), np.log(1e2)), (np.log(1e-2), np.log(1e3)), (floor, np.log(1e2))]
     x0[2] = max(x0[2], floor)
     best = None
-    for shift in (0.0, np.log(3.0)):  # two starts in the length scale
+    for shift in shifts:  # a few starts in the length scale
         start = x0 + np.array([shift, 0.0, 0.0])
         res = minimize(objective, start, jac=True, method="L-BFGS-B", bounds=bounds)
         if best is None or res.fun < best.fun:
@@ -151,21 +199,26 @@ def learn_from_clusters(
 
 
 def _with_plsc(
-    sets: list[tuple[QuadratureSet, FloatArray]],
+    sets: list[LearningSet],
     ell: float,
     sf2: float,
     sn2: float,
     config: MapConfig,
     work: BlockWorkspace | None = None,
+    latent: bool = False,
 ) -> Hyperparameters:
-    """The kernel with PLSC α, β fitted by LOO on ``sets`` (and the optional refinement)."""
+    """The kernel with PLSC α, β fitted by LOO on ``sets`` (and the optional refinement).
+
+    ``latent``: the LOO variances are those of the latent function (see
+    :func:`~octolgp.gp.likelihood.loo_predictions`), not of a noisy observation.
+    """
     hp = Hyperparameters(length_scale=ell, signal_variance=sf2, noise_variance=sn2)
     mus, vs, ys = [], [], []
-    for items, y in sets:
-        mu, var = loo_predictions(items, y, hp, work)
+    for part in sets:
+        mu, var = loo_predictions(part.items, part.y, hp, work, part.noise_scale, latent)
         mus.append(mu)
         vs.append(var)
-        ys.append(y)
+        ys.append(part.y)
     alpha, beta = fit_plsc(
         np.concatenate(mus),
         np.concatenate(vs),
@@ -173,19 +226,23 @@ def _with_plsc(
     )
     hp = Hyperparameters(ell, sf2, sn2, alpha, beta)
     if config.learning.objective == "lml+loo":
-        hp = refine_by_loo(sets, hp, work)
+        hp = refine_by_loo(sets, hp, work, latent)
     return hp
 
 
 def refine_by_loo(
-    sets: list[tuple[QuadratureSet, FloatArray]],
+    sets: list[LearningSet],
     start: Hyperparameters,
     work: BlockWorkspace | None = None,
+    latent: bool = False,
 ) -> Hyperparameters:
-    """Maximise the summed LOO log predictive probability over all five parameters."""
-    n_total = max(sum(y.size for _, y in sets), 1)
+    """Maximise the summed LOO log predictive probability over all five parameters.
+
+    ``latent``: LOO variances of the latent function (as in :func:`_with_plsc`).
+    """
+    n_total = max(sum(part.y.size for part in sets), 1)
     # per-item mean: sane first steps for L-BFGS-B
-    objective = _negated_sum(loo_log_predictive, sets, 5, 1.0 / n_total, work)
+    objective = _negated_sum(loo_log_predictive, sets, 5, 1.0 / n_total, work, latent=latent)
 
     x0 = np.array(
         [
@@ -208,6 +265,132 @@ def refine_by_loo(
     return Hyperparameters(float(ell), float(sf2), float(sn2), float(res.x[3]), float(res.x[4]))
 
 
+def voxel_observations(
+    scans: Iterable[Scan], config: MapConfig
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Every voxel the scans observe, as the lattice engine sees it after them.
+
+    The counts are those a map's leaves hold after the scans
+    (:func:`octolgp.observations.advance` from nothing, then
+    :func:`~octolgp.observations.effective_counts`): a voxel with a return is occupied,
+    at its kept return, weighing its return count; one seen only free is free, at its
+    centre, weighing ``lattice.free_weight`` times its free count. Where later free looks
+    forgot every return (a world that changed while the scans were taken), the voxels
+    with returns count as occupied anyway, so that there is something to learn from.
+
+    Returns
+    -------
+    points : ndarray of shape (n, d)
+        Metres, world frame: the occupied voxels, then the free ones.
+    y : ndarray of shape (n,)
+        +1 occupied, −1 free.
+    weights : ndarray of shape (n,)
+        ``w`` of the observation noise ``σn² / w``.
+    """
+    obs = observe(scans, config)
+    cap = config.lattice.evidence_cap
+    zero = np.zeros(obs.n_voxels, dtype=np.int64)
+    state = advance(zero, zero, obs, np.arange(obs.n_voxels), cap)
+    hits, frees = effective_counts(state.hits, state.frees, cap, config.clear_scans)
+    kept = state.position
+    if not np.any(hits) and np.any(obs.hits):  # every return forgotten
+        hits, kept = np.minimum(obs.hits, cap), obs.first_hit
+        frees = np.where(hits > 0, 0, frees)
+    centres = key_to_coord(obs.keys, config.resolution, config.tree_depth)
+    occupied = hits > 0
+    free = ~occupied & (frees > 0)
+    at = np.where(np.isnan(kept[occupied]), centres[occupied], kept[occupied])
+    points = np.concatenate([at, centres[free]])
+    y = np.concatenate([np.ones(int(occupied.sum())), -np.ones(int(free.sum()))])
+    weights = np.concatenate(
+        [hits[occupied].astype(np.float64), config.lattice.free_weight * frees[free]]
+    )
+    return points, y, weights
+
+
+def voxel_learning_sets(
+    points: FloatArray, y: FloatArray, weights: FloatArray, config: MapConfig
+) -> list[LearningSet]:
+    """Up to ``learning.max_clusters`` sets of voxel observations spread over the map.
+
+    Seeds are occupied voxels evenly spaced in their order along the axis of largest
+    extent. A set holds the ``max_items_per_cluster // 2`` occupied voxels nearest its
+    seed and the free voxels within the distance of the farthest of them, randomly
+    thinned (``learning.seed``) to fill ``max_items_per_cluster`` items.
+
+    Parameters
+    ----------
+    points, y, weights : ndarray of shape (n, d), (n,), (n,)
+        As returned by :func:`voxel_observations`, with at least one occupied voxel.
+    config : MapConfig
+
+    Returns
+    -------
+    list of LearningSet
+        Point items, noise scales ``1 / w``.
+    """
+    lc = config.learning
+    rng = np.random.default_rng(lc.seed)
+    occupied, free = np.flatnonzero(y > 0), np.flatnonzero(y < 0)
+    hit_points, free_points = points[occupied], points[free]
+    cap = lc.max_items_per_cluster
+    n_near = min(cap // 2, occupied.size)
+    axis = int(np.argmax(np.ptp(hit_points, axis=0)))
+    order = np.argsort(hit_points[:, axis], kind="stable")
+    k = min(lc.max_clusters, occupied.size)
+    seeds = np.unique(order[np.linspace(0, occupied.size - 1, k).round().astype(int)])
+    sets = []
+    for seed in hit_points[seeds]:  # one iteration per set, a few
+        d2 = np.sum((hit_points - seed) ** 2, axis=1)
+        near = np.argsort(d2, kind="stable")[:n_near]
+        inside = np.flatnonzero(np.sum((free_points - seed) ** 2, axis=1) <= d2[near[-1]])
+        if inside.size > cap - n_near:
+            inside = np.sort(rng.choice(inside, size=cap - n_near, replace=False))
+        idx = np.concatenate([occupied[near], free[inside]])
+        sets.append(LearningSet(points_set(points[idx]), y[idx], 1.0 / weights[idx]))
+    return sets
+
+
+def learn_from_voxels(scans: Iterable[Scan], config: MapConfig) -> Hyperparameters:
+    """Learn on voxel observations: the kernel by LML on :func:`voxel_learning_sets`, then α, β.
+
+    α, β are fitted by LOO on the same sets with the latent LOO variances, as the map
+    applies PLSC to its latent posterior.
+
+    Raises
+    ------
+    OctolgpError
+        On scans that observe no voxel or hold no return.
+    """
+    points, y, weights = voxel_observations(scans, config)
+    if y.size == 0:
+        raise _no_data()
+    if not np.any(y > 0):
+        raise _no_return()
+    sets = voxel_learning_sets(points, y, weights, config)
+    work = BlockWorkspace()
+    initial = Hyperparameters(length_scale=10.0 * config.resolution)
+    # one start: from a third and three times the initial length scale the optimum is
+    # the same to 1e-5 on Intel, FR079 and the lidar room
+    ell, sf2, sn2 = fit_kernel(sets, initial, MIN_NOISE_VARIANCE, work, shifts=(0.0,))
+    return _with_plsc(sets, ell, sf2, sn2, config, work, latent=True)
+
+
+def _no_data() -> OctolgpError:
+    return OctolgpError(
+        "learn_hyperparameters: the scans give no training data (every beam has zero "
+        "length); pass MapConfig.hyperparameters or scans with real beams"
+    )
+
+
+def _no_return() -> OctolgpError:
+    return OctolgpError(
+        "learn_hyperparameters: the scans hold no return (every beam is a no-return, "
+        "so nothing is occupied to learn from); pass MapConfig.hyperparameters or "
+        "scans that hit something"
+    )
+
+
 def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperparameters:
     """Learn kernel hyperparameters and PLSC α, β from scans.
 
@@ -215,10 +398,11 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
     ----------
     scans : iterable of Scan
     config : MapConfig
-        ``learning`` chooses the data subset: ``max_clusters`` clusters of at most
-        ``max_items_per_cluster`` items each. Both online engines use the
-        hyperparameters learnt here, on hits and free segments with integral
-        kernels (the paper's model).
+        ``learning.model`` chooses the observation model (:func:`learning_model`:
+        by default the online engine's own, voxel observations for the lattice
+        engine, hits and free segments with integral kernels for the exact one), and
+        ``learning`` the subset: ``max_clusters`` sets of at most
+        ``max_items_per_cluster`` items each.
 
     Returns
     -------
@@ -227,12 +411,15 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
 
     Notes
     -----
-    Memory: the kernel matrices are built from node blocks of at most 4 MiB
-    (:func:`octolgp.gp.kernels.covariance_with_grad`), and the freed heap is handed
-    back to the OS at the end (:func:`octolgp.memory.release_free_memory`). On the
-    first 40 FR079 scans the RSS rises ~30 MB during the learning and ~5 MB stay
-    after it (it was ~245 MB and ~70 MB with whole ``(N, N)`` node matrices kept per
-    cluster), besides ~52 MB for importing scikit-learn's k-means (the partition).
+    Time: on the voxel model the sets are ``(n, n)`` point kernels (n = 300 by
+    default), so the optimisation costs about as much as turning the scans into voxel
+    observations (each a few tenths of a second on 40 Intel scans or 5 lidar scans).
+    Memory: the segment model's kernel matrices are built from node blocks of at most
+    4 MiB (:func:`octolgp.gp.kernels.covariance_with_grad`), and either model hands the
+    freed heap back to the OS at the end (:func:`octolgp.memory.release_free_memory`).
+    On the first 40 FR079 scans the segment model's RSS rises ~30 MB during the
+    learning and ~5 MB stay after it, besides ~52 MB for importing scikit-learn's
+    k-means (its partition); the voxel model imports no scikit-learn.
 
     Raises
     ------
@@ -240,18 +427,16 @@ def learn_hyperparameters(scans: Iterable[Scan], config: MapConfig) -> Hyperpara
         On bad scans, scans that give no training data (every beam on its sensor) or
         no return (every beam a no-return).
     """
+    if learning_model(config) == "voxels":
+        with threadpool_limits(limits=1):  # small matrices: one BLAS thread is fastest
+            hp = learn_from_voxels(scans, config)
+        release_free_memory()
+        return hp
     data = make_training_data(scans, config)
     if data.n_items == 0:
-        raise OctolgpError(
-            "learn_hyperparameters: the scans give no training data (every beam has zero "
-            "length); pass MapConfig.hyperparameters or scans with real beams"
-        )
+        raise _no_data()
     if data.hits.shape[0] == 0:
-        raise OctolgpError(
-            "learn_hyperparameters: the scans hold no return (every beam is a no-return, "
-            "so nothing is occupied to learn from); pass MapConfig.hyperparameters or "
-            "scans that hit something"
-        )
+        raise _no_return()
     with threadpool_limits(limits=1):  # small matrices: one BLAS thread is fastest
         hp = learn_from_clusters(data, partition(data, config), config)
     del data

@@ -18,7 +18,7 @@ from typing import Generic, TypeVar
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gp.learning import learn_hyperparameters
 from octolgp.scan import Scan
-from octolgp.training import make_training_data
+from octolgp.training import split_beams, stack_beams
 
 M = TypeVar("M")
 
@@ -54,9 +54,11 @@ class Bootstrap(Generic[M]):
         Free segments alone (scans whose beams are all no-returns) say nothing of what
         is occupied, so the map keeps buffering until a return arrives.
         """
-        if not self.scans:
-            return False
-        return int(make_training_data(self.scans, self.config).hits.shape[0]) > 0
+        for scan in self.scans:  # stops at the first scan with a return
+            origins, ends, max_range = stack_beams([scan])
+            if split_beams(origins, ends, max_range, self.config.free_margin).is_hit.any():
+                return True
+        return False
 
     def learn(self) -> Hyperparameters:
         """The hyperparameters learnt on the buffered scans (nothing changes)."""
