@@ -222,7 +222,10 @@ def test_tool_reports_learning_and_flush_rows(bench: ModuleType) -> None:
 
 def test_tool_quick_run(bench: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
     t0 = time.perf_counter()
-    assert bench.main(["--quick", "--hp", "0.8", "--scans", "2", "--per-scan"]) == 0
+    assert (
+        bench.main(["--quick", "--hp", "0.8", "--scans", "2", "--per-scan", "--scenes", "room"])
+        == 0
+    )
     out = capsys.readouterr().out
     assert time.perf_counter() - t0 < 60
     assert "Machine:" in out
