@@ -1,4 +1,4 @@
-"""The live-3D benchmark tools: the DUFOMap peer, the street's held-out labels, the smoke runs."""
+"""The live-mapping benchmark tools: the DUFOMap peer, the street's held-out labels, the 3D and 2D smoke runs."""
 
 from __future__ import annotations
 
@@ -158,3 +158,41 @@ def test_bench3d_quick_run_of_every_scene(
         assert re.search(r"^\| room \| 2 \| [0-9.]+ \| [0-9.]+ \|", out, flags=re.M)
     if dufomap_available():
         assert re.search(r"^\| room \| 2 \| [0-9.]+ \| [0-9.]+ \| [0-9.]+ \|", out, flags=re.M)
+
+
+def test_bench2d_quick_run_against_octomap(
+    bench2d: ModuleType, capsys: pytest.CaptureFixture[str]
+) -> None:
+    t0 = time.perf_counter()
+    assert bench2d.main(["--scans", "8", "--learn-scans", "3"]) == 0
+    out = capsys.readouterr().out
+    assert time.perf_counter() - t0 < 60
+    assert "Machine:" in out
+    assert "Command:" in out
+    # Scans 1-2 buffer, the 3rd learns, 5 inserts after it.
+    row = re.search(r"^\| default \| [0-9.]+ \| [0-9.]+ \| 5 \| ([0-9.]+) \|", out, flags=re.M)
+    assert row is not None
+    step = re.search(r"\| ([0-9.]+) \(scan 3\) \| ([0-9.]+) \|", out)
+    assert step is not None
+    assert 0 < float(step.group(2)) <= float(step.group(1))
+    assert re.search(r"^Verdict intel: ", out, flags=re.M)
+    if octomap_available():
+        assert re.search(r"^\| default \| [0-9.]+ \| [0-9.]+ \| [0-9.]+× \|", out, flags=re.M)
+        assert "(goal ≤ 0.5x)" in out
+
+
+def test_bench2d_keeps_config_of(bench2d: ModuleType) -> None:
+    config = bench2d.config_of("online.engine=exact; online.n_jobs=1")
+    assert config.online.engine == "exact"
+    assert config.online.n_jobs == 1
+    assert config.resolution == 0.1
+    run = bench2d.Run2D(
+        octolgp_s=[0.001, 2.0, 0.01, 0.03],
+        octomap_s=[0.02, 0.02, 0.02, 0.04],
+        kind=["buffered", "learning", "known", "known"],
+        learn_s=1.5,
+    )
+    assert run.after() == ([0.01, 0.03], [0.02, 0.04])
+    assert "| 2.00 (scan 2) | 1.50 |" in bench2d.timing_row("default", run)
+    assert "0.67×" in bench2d.octomap_row("default", run)
+    assert "**no**" in bench2d.verdict("intel", run)
