@@ -16,6 +16,7 @@ import pytest
 from scipy.linalg import cho_solve
 from sklearn.gaussian_process import GaussianProcessRegressor
 from sklearn.gaussian_process.kernels import ConstantKernel, Matern
+from test_learning import _room_scans
 from threadpoolctl import threadpool_limits
 
 import octolgp.gp.learning as learning_module
@@ -43,22 +44,6 @@ def _points(seed: int, n: int, dim: int = 2) -> tuple[np.ndarray, np.ndarray, np
     y = np.where(rng.random(n) < 0.4, 1.0, -1.0)
     scale = np.where(y > 0, 1.0, rng.uniform(1.0, 20.0, n))
     return X, y, scale
-
-
-def _room_scans(n_scans: int, n_beams: int, seed: int = 0) -> list[Scan]:
-    """Scans of the walls of a 6 m x 4 m room from random poses inside it."""
-    rng = np.random.default_rng(seed)
-    lo, hi = np.array([0.0, 0.0]), np.array([6.0, 4.0])
-    scans = []
-    for _ in range(n_scans):
-        origin = rng.uniform(lo + 0.5, hi - 0.5)
-        angle = rng.uniform(0, 2 * np.pi) + np.linspace(0, 2 * np.pi, n_beams, endpoint=False)
-        d = np.stack([np.cos(angle), np.sin(angle)], axis=1)
-        with np.errstate(divide="ignore"):
-            t = np.where(d > 0, (hi - origin) / d, (lo - origin) / d)
-        r = np.min(np.where(d != 0, t, np.inf), axis=1) + rng.normal(0, 0.01, n_beams)
-        scans.append(Scan(origin, origin + r[:, None] * d))
-    return scans
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -95,7 +95,13 @@ from octolgp.bench.dufomap_ref import DufomapReference, dufomap_available
 from octolgp.bench.heldout import evaluate, heldout_points
 from octolgp.bench.octomap_ref import OctomapReference, octomap_available
 from octolgp.scan import Scan
-from octolgp.sim.lidar3d import ROOM_SIZE, SENSOR_HEIGHT, simulate_lidar_room
+from octolgp.sim.lidar3d import (
+    ROOM_SIZE,
+    SENSOR_HEIGHT,
+    beam_test_points,
+    simulate_lidar_room,
+    true_labels,
+)
 from octolgp.sim.mission import Mission3D, simulate_mission3d
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -812,20 +818,14 @@ def street_heldout_points(
         keep = t > 1e-9
         t, dirs = t[keep], delta[keep] / t[keep, None]
         hit = t < mission.max_range * (1.0 - 1e-9)
-        occ.append(scan.origin + (t[hit] + inside)[:, None] * dirs[hit])
-        free_len = np.where(hit, t - short, mission.max_range)
-        beam = np.flatnonzero(free_len > 0)
-        s = rng.random(beam.size) * free_len[beam]
-        free.append(scan.origin + s[:, None] * dirs[beam])
+        o, f = beam_test_points(
+            scan.origin, t, dirs, hit, mission.max_range, rng, inside=inside, short=short
+        )
+        occ.append(o)
+        free.append(f)
     occupied = np.concatenate(occ) if occ else np.empty((0, 3))
     empty = np.concatenate(free) if free else np.empty((0, 3))
-    good_occ = mission.truth(occupied) == 1
-    good_free = mission.truth(empty) == 0
-    points = np.concatenate([occupied[good_occ], empty[good_free]])
-    labels = np.concatenate(
-        [np.ones(int(good_occ.sum()), np.int8), np.zeros(int(good_free.sum()), np.int8)]
-    )
-    return points, labels, int((~good_occ).sum() + (~good_free).sum())
+    return true_labels(occupied, empty, mission.truth)
 
 
 def street_heldout_poses(

@@ -18,6 +18,7 @@ against that geometry.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -250,21 +251,79 @@ class LidarRoom:
                 )
                 keep = np.sort(first)
                 t, dirs = t[keep], dirs[keep]
-            hit = t < self.max_range
-            occ.append(pose[:3] + (t[hit] + inside)[:, None] * dirs[hit])
-            free_len = np.where(hit, t - short, self.max_range)
-            beam = np.repeat(np.flatnonzero(free_len > 0), free_per_beam)
-            s = rng.random(beam.size) * free_len[beam]
-            free.append(pose[:3] + s[:, None] * dirs[beam])
-        occupied, empty = np.concatenate(occ), np.concatenate(free)
-        good_occ = self.truth(occupied) == 1
-        good_free = self.truth(empty) == 0
-        points = np.concatenate([occupied[good_occ], empty[good_free]])
-        labels = np.concatenate(
-            [np.ones(int(good_occ.sum()), np.int8), np.zeros(int(good_free.sum()), np.int8)]
-        )
-        dropped = int((~good_occ).sum() + (~good_free).sum())
-        return points, labels, dropped
+            o, f = beam_test_points(
+                pose[:3],
+                t,
+                dirs,
+                t < self.max_range,
+                self.max_range,
+                rng,
+                inside=inside,
+                short=short,
+                free_per_beam=free_per_beam,
+            )
+            occ.append(o)
+            free.append(f)
+        return true_labels(np.concatenate(occ), np.concatenate(free), self.truth)
+
+
+def beam_test_points(
+    origin: FloatArray,
+    t: FloatArray,
+    dirs: FloatArray,
+    hit: NDArray[np.bool_],
+    max_range: float,
+    rng: np.random.Generator,
+    *,
+    inside: float,
+    short: float,
+    free_per_beam: int = 1,
+) -> tuple[FloatArray, FloatArray]:
+    """Candidate test points of one held-out scan: occupied behind each hit, free before it.
+
+    Parameters
+    ----------
+    origin : ndarray of shape (3,)
+        Sensor position, metres, world frame.
+    t, dirs : ndarray of shape (b,) and (b, 3)
+        Each beam's range (metres) and unit direction.
+    hit : ndarray of bool, shape (b,)
+        The beam returned (else it is a no-return of ``max_range``).
+    max_range : float
+    rng : numpy.random.Generator
+    inside, short : float
+        Metres a hit is pushed into the surface; metres short of the hit a free point
+        may lie at most.
+    free_per_beam : int
+        Free points per beam, uniform on ``[0, t - short)`` (``[0, max_range)`` for a
+        no-return).
+
+    Returns
+    -------
+    occupied, free : ndarray of shape (h, 3) and (f, 3)
+    """
+    occupied = origin + (t[hit] + inside)[:, None] * dirs[hit]
+    free_len = np.where(hit, t - short, max_range)
+    beam = np.repeat(np.flatnonzero(free_len > 0), free_per_beam)
+    s = rng.random(beam.size) * free_len[beam]
+    return occupied, origin + s[:, None] * dirs[beam]
+
+
+def true_labels(
+    occupied: FloatArray, free: FloatArray, truth: Callable[[FloatArray], NDArray[np.int8]]
+) -> tuple[FloatArray, NDArray[np.int8], int]:
+    """Candidate points whose label the exact geometry confirms, labelled.
+
+    Returns the points (occupied first), their labels (1 occupied, 0 free) and how
+    many candidates ``truth`` (1 inside an obstacle, 0 outside) contradicted.
+    """
+    good_occ = truth(occupied) == 1
+    good_free = truth(free) == 0
+    points = np.concatenate([occupied[good_occ], free[good_free]])
+    labels = np.concatenate(
+        [np.ones(int(good_occ.sum()), np.int8), np.zeros(int(good_free.sum()), np.int8)]
+    )
+    return points, labels, int((~good_occ).sum() + (~good_free).sum())
 
 
 def simulate_lidar_room(
