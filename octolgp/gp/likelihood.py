@@ -16,9 +16,9 @@ from scipy.linalg import LinAlgError, cho_factor, cho_solve, lapack
 from scipy.special import log_ndtr
 
 from octolgp.config import Hyperparameters
-from octolgp.gp.kernels import BlockWorkspace, covariance_with_grad, item_covariance
+from octolgp.gp.kernels import BlockWorkspace, covariance_with_grad
 from octolgp.gp.quadrature import QuadratureSet
-from octolgp.gp.regression import cholesky, factor
+from octolgp.gp.regression import factor
 from octolgp.scan import FloatArray
 
 LOG_2PI = float(np.log(2.0 * np.pi))
@@ -130,13 +130,7 @@ def loo_predictions(
     -------
     mean, var : ndarray of shape (n,)
     """
-    if noise_scale is None:
-        L, weights, _ = factor(items, y, hp, work)
-    else:
-        K = item_covariance(items, items, hp.length_scale, hp.signal_variance, work)
-        K[np.diag_indices_from(K)] += _noise(hp.noise_variance, y.shape[0], noise_scale)
-        L, _ = cholesky(K)
-        weights = cho_solve((L, True), y, check_finite=False)
+    L, weights, _ = factor(items, y, hp, work, noise_scale)
     diag = np.diag(_inverse(L))
     var = 1.0 / diag
     if latent:

@@ -93,15 +93,21 @@ def cholesky(K: FloatArray) -> tuple[FloatArray, bool]:
 
 
 def factor(
-    items: QuadratureSet, y: FloatArray, hp: Hyperparameters, work: BlockWorkspace | None = None
+    items: QuadratureSet,
+    y: FloatArray,
+    hp: Hyperparameters,
+    work: BlockWorkspace | None = None,
+    noise_scale: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, bool]:
     """Cholesky factor of ``K + σn² I`` and the weights ``(K + σn² I)⁻¹ y`` (Alg. 2.1 l. 2-3).
 
     The third value tells whether the factor needed a jitter (:func:`cholesky`).
-    ``work``: node blocks for :func:`~octolgp.gp.kernels.item_covariance`, to reuse.
+    ``work``: node blocks for :func:`~octolgp.gp.kernels.item_covariance`, to reuse;
+    ``noise_scale``: per-item factors ``s`` of shape (n,), the noise then ``σn² diag(s)``.
     """
     K = item_covariance(items, items, hp.length_scale, hp.signal_variance, work)
-    K[np.diag_indices_from(K)] += hp.noise_variance
+    noise = hp.noise_variance if noise_scale is None else hp.noise_variance * noise_scale
+    K[np.diag_indices_from(K)] += noise
     L, repaired = cholesky(K)
     if L.shape[0] == 0:  # no items: the GP is its prior
         return L, np.zeros(0), repaired
