@@ -45,15 +45,16 @@ def _as_points(
     [(2, 16, 4, 6), (2, 16, 4, 12), (2, 8, 2, 5), (3, 8, 2, 3), (3, 4, 1, 4)],
 )  # (2, 16, 4, 12): the 2D default's 144-point lattice, inverted through Cholesky
 @pytest.mark.parametrize("free_weight", [1.0, 0.1])
+@pytest.mark.parametrize("compiled", [False, True])
 def test_the_batched_posterior_is_the_dtc_written_out(
-    dim: int, side: int, halo: int, k: int, free_weight: float
+    dim: int, side: int, halo: int, k: int, free_weight: float, compiled: bool
 ) -> None:
     g = LatticeGeometry(dim, side, halo, k, 0.1)
     tables = lattice_tables(g, HP)
     rng = np.random.default_rng(dim * 100 + k)
     hits, frees = _counts(rng, 5, g.n_halo)
     hits[0] = frees[0] = 0  # a leaf with nothing observed
-    mean, var = lattice_posterior(tables, hits, frees, free_weight)
+    mean, var = lattice_posterior(tables, hits, frees, free_weight, compiled=compiled)
     for j in range(hits.shape[0]):
         pts, y, w = _as_points(g, hits[j], frees[j], free_weight)
         ref_mean, ref_var = dtc_reference(g.inducing_points(), pts, y, w, g.leaf_centres(), HP)
@@ -175,11 +176,12 @@ def test_the_posterior_variance_lies_between_zero_and_the_prior(
     assert (var <= sf2 * (1 + 1e-9)).all()
 
 
-def test_a_vanishing_noise_variance_stays_finite() -> None:
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_vanishing_noise_variance_stays_finite(compiled: bool) -> None:
     hp = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)
     g = LatticeGeometry(2, 8, 2, 4, 0.1)
     hits, frees = _counts(np.random.default_rng(5), 2, g.n_halo)
-    mean, var = lattice_posterior(lattice_tables(g, hp), hits, frees)
+    mean, var = lattice_posterior(lattice_tables(g, hp), hits, frees, compiled=compiled)
     assert np.isfinite(mean).all()
     assert np.isfinite(var).all()
 
@@ -203,7 +205,8 @@ def test_the_geometry_lays_the_halo_box_out_x_fastest() -> None:
     np.testing.assert_allclose(U.min(0), -0.5 + 1.5 / 2)
 
 
-def test_returns_at_their_positions_are_the_dtc_written_out() -> None:
+@pytest.mark.parametrize("compiled", [False, True])
+def test_returns_at_their_positions_are_the_dtc_written_out(compiled: bool) -> None:
     g = LatticeGeometry(2, 8, 2, 5, 0.1)
     tables = lattice_tables(g, HP)
     rng = np.random.default_rng(11)
@@ -213,7 +216,7 @@ def test_returns_at_their_positions_are_the_dtc_written_out() -> None:
         occupied = np.flatnonzero(hits[j])
         jitter = rng.uniform(-0.05, 0.05, (occupied.size, 2))
         points.append((g.halo_centres()[occupied] + jitter, hits[j, occupied].astype(float)))
-    mean, var = lattice_posterior(tables, hits, frees, 0.3, points)
+    mean, var = lattice_posterior(tables, hits, frees, 0.3, points, compiled=compiled)
     X = g.halo_centres()
     for j in range(3):
         f = frees[j] > 0
@@ -225,8 +228,8 @@ def test_returns_at_their_positions_are_the_dtc_written_out() -> None:
         np.testing.assert_allclose(var[j], ref_var, atol=1e-9)
     # returns at their voxel centres are the table's returns
     centred = [(X[np.flatnonzero(hits[j])], p[1]) for j, p in enumerate(points)]
-    a = lattice_posterior(tables, hits, frees, 0.3, centred)
-    b = lattice_posterior(tables, hits, frees, 0.3)
+    a = lattice_posterior(tables, hits, frees, 0.3, centred, compiled=compiled)
+    b = lattice_posterior(tables, hits, frees, 0.3, compiled=compiled)
     np.testing.assert_allclose(a[0], b[0], atol=1e-9)
     np.testing.assert_allclose(a[1], b[1], atol=1e-9)
 

@@ -46,6 +46,7 @@ from scipy.linalg import solve_triangular
 from scipy.linalg.lapack import dpotrf, dtrtri
 
 from octolgp.config import Hyperparameters
+from octolgp.gp import lattice_kernel
 from octolgp.gp.kernels import matern32
 from octolgp.scan import FloatArray
 
@@ -240,6 +241,13 @@ Measured on one thread (ms per stack): m = 8, 1000 matrices: loop 2.1-3.9, batch
 1.0-1.2; m = 27, 1000: 7.0-7.7 vs 9.6-10.4; m = 64, 500: 23 vs 42-46; m = 144, 240: 55
 vs 234. Both paths agree to rounding (``tests/test_lattice.py``)."""
 
+COMPILED_UP_TO = 64
+"""Largest lattice (``m``) that :func:`lattice_posterior` fits with the compiled kernel
+by default. The kernel skips unobserved voxels and keeps each leaf in cache, which wins
+on the 3D lattices (``m`` 27 and 64, 64 leaf voxels); from ``m = 64`` in 2D (256 leaf
+voxels) the stacked BLAS products are as fast, and faster beyond (BENCHMARKS.md,
+"Lattice engine")."""
+
 CHUNK_BYTES = 16 << 20
 """Bytes of the largest transient array of one chunk of leaves in :func:`lattice_posterior`
 (bounded chunks reuse freed memory instead of faulting in fresh pages)."""
@@ -298,6 +306,8 @@ def lattice_posterior(
     frees: NDArray[np.integer],
     free_weight: float = 1.0,
     hit_points: HitPoints | Returns | None = None,
+    *,
+    compiled: bool | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Latent posterior at the voxel centres of many leaves at once.
 
@@ -313,6 +323,10 @@ def lattice_posterior(
         Per leaf, the returns at their measured positions (relative to the leaf's
         lower corner) with their weights; then ``hits`` is not used. By default each
         return sits at its voxel's centre.
+    compiled : bool, optional
+        Whether to run the compiled kernel (:mod:`octolgp.gp.lattice_kernel`, leaf by
+        leaf) or the stacked numpy products; by default the kernel where numba imports
+        and ``m <= COMPILED_UP_TO``. The two agree to rounding.
 
     Returns
     -------
@@ -326,6 +340,29 @@ def lattice_posterior(
         if isinstance(hit_points, list)
         else hit_points
     )
+    if compiled is None:
+        compiled = lattice_kernel.AVAILABLE and m <= COMPILED_UP_TO
+    if compiled:
+        prec = 1.0 / tables.noise_variance
+        if returns is None:
+            features, weights = np.zeros((0, m)), np.zeros(0)
+            offsets = np.zeros(n_leaves + 1, dtype=np.int64)
+        else:
+            features = tables.features(returns.points)
+            weights, offsets = returns.weights * prec, returns.offsets
+        return lattice_kernel.leaf_posteriors(
+            None if returns is not None else hits,
+            frees,
+            free_weight,
+            prec,
+            tables.phi,
+            tables.pairs,
+            tables.psi_t,
+            tables.residual,
+            features,
+            weights,
+            offsets,
+        )
     per_leaf = 8 * max(m * m, m * n_vox, tables.pairs.shape[1])
     step = max(1, CHUNK_BYTES // per_leaf)
     mean = np.empty((n_leaves, n_vox))
