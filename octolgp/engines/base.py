@@ -194,16 +194,15 @@ def fitted_leaves(
     pruned = (free | occupied) if prune else np.zeros(n, dtype=bool)
     at = np.where(free, np.argmax(prob, axis=1), np.argmin(prob, axis=1))
     values = [np.asarray(a, dtype=np.float32) for a in (mean, var, prob)]
-    one = [v[rows, at] for v in values]  # the least confident value of each pruned leaf
+    full = [list(v) for v in values]  # each leaf's rows, as views
+    # the least confident value of each leaf, as a view of shape (1,)
+    one = [list(v[rows, at][:, None]) for v in values]
     out = []
-    for j, leaf in enumerate(leaves):  # one iteration per leaf: its own arrays
-        if pruned[j]:
-            m, v, p = (o[j : j + 1].copy() for o in one)
+    for leaf, p, m, v, q, m1, v1, q1 in zip(leaves, pruned.tolist(), *full, *one, strict=True):
+        if p:  # one iteration per leaf: copies of its rows, its own arrays
+            out.append(leaf.refitted(m1.copy(), v1.copy(), q1.copy(), True))
         else:
-            m, v, p = (a[j].copy() for a in values)
-        out.append(
-            leaf.evolve(mean=m, var=v, prob=p, pruned=bool(pruned[j]), refits=leaf.refits + 1)
-        )
+            out.append(leaf.refitted(m.copy(), v.copy(), q.copy(), False))
     return out
 
 

@@ -23,6 +23,7 @@ import struct
 from collections.abc import Iterable
 from concurrent.futures import Executor
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
@@ -105,11 +106,45 @@ def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
     return ev
 
 
+def evidence_of(leaves: list[Leaf]) -> list[LatticeEvidence]:
+    """:func:`lattice_evidence` of many leaves (raises ``TypeError`` on another engine's)."""
+    evidence = [leaf.evidence for leaf in leaves]
+    if set(map(type, evidence)) <= {LatticeEvidence}:
+        return cast(list[LatticeEvidence], evidence)
+    return [lattice_evidence(leaf) for leaf in leaves]
+
+
+def _stack(arrays: list[np.ndarray]) -> np.ndarray:
+    """``np.stack(arrays)``, faster for many small arrays of one shape."""
+    shapes = {a.shape for a in arrays}
+    if len(shapes) != 1 or not next(iter(shapes)):  # none, mixed (np.stack raises) or 0-d
+        return np.stack(arrays)
+    return np.concatenate(arrays).reshape(len(arrays), *next(iter(shapes)))
+
+
 def halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntArray, IntArray]:
     """Every (observed voxel, leaf whose halo box holds it) pair.
 
     Returns the voxel (index into ``obs``), the leaf's packed key and the voxel's flat
     index in that leaf's halo box, per pair; pairs are grouped by the neighbour offset.
+    """
+    return _halo_pairs(obs, grid)[:3]
+
+
+def _halo_pairs(
+    obs: VoxelObservations, grid: LeafGrid
+) -> tuple[IntArray, IntArray, IntArray, IntArray, tuple[int, ...], tuple[int, ...]]:
+    """:func:`halo_copies`, and each pair's leaf as a cell of the pairs' bounding box.
+
+    Returns
+    -------
+    voxel, leaf_key, flat : ndarray of int64, shape (p,)
+        As :func:`halo_copies`.
+    cell : ndarray of int64, shape (p,)
+        The leaf's flat index (x fastest) in the box of leaf indices that holds every
+        pair's leaf; cells ascend as packed keys do.
+    origin, extent : tuple of int, length d
+        That box's lowest leaf index and its size, per axis.
     """
     side, halo, d = grid.side, grid.halo_voxels, grid.dim
     box = side + 2 * halo
@@ -121,7 +156,10 @@ def halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntAr
         ((q >= 0) & (q < n_leaf), ((c + halo) // side > q) & (q + 1 < n_leaf))
         for c, q in zip(cols, lo, strict=True)
     ]
-    vox_parts, leaf_parts, flat_parts = [], [], []
+    origin = tuple(int(q.min()) if q.size else 0 for q in lo)
+    extent = tuple(int(q.max()) - o + 2 if q.size else 1 for q, o in zip(lo, origin, strict=True))
+    stride = np.cumprod((1, *extent[:-1])).tolist()
+    vox_parts, leaf_parts, flat_parts, cell_parts = [], [], [], []
     for offset in itertools.product((0, 1), repeat=d):  # 4 or 8 neighbours
         ok = has[0][offset[0]]
         for a in range(1, d):
@@ -129,14 +167,54 @@ def halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntAr
         v = np.flatnonzero(ok)
         packed = np.zeros(v.size, dtype=np.int64)
         flat = np.zeros(v.size, dtype=np.int64)
-        for a in range(d):  # per axis: the leaf index, packed, and the offset in its box
+        cell = np.zeros(v.size, dtype=np.int64)
+        for a in range(d):  # per axis: the leaf index, packed, its cell and the offset in it
             leaf = lo[a][v] + offset[a]
             packed |= leaf << (KEY_BITS * a)
+            cell += (leaf - origin[a]) * stride[a]
             flat += (cols[a][v] - (leaf * side - halo)) * box**a
         vox_parts.append(v)
         leaf_parts.append(packed)
         flat_parts.append(flat)
-    return np.concatenate(vox_parts), np.concatenate(leaf_parts), np.concatenate(flat_parts)
+        cell_parts.append(cell)
+    parts = (vox_parts, leaf_parts, flat_parts, cell_parts)
+    voxel, leaf_key, flat, cell = (np.concatenate(p) for p in parts)
+    return voxel, leaf_key, flat, cell, origin, extent
+
+
+def _touched_leaves(
+    leaf_key: IntArray, cell: IntArray, origin: tuple[int, ...], extent: tuple[int, ...]
+) -> tuple[IntArray, IntArray]:
+    """The distinct leaves of the pairs, ascending, and each pair's leaf among them.
+
+    Parameters
+    ----------
+    leaf_key, cell : ndarray of int64, shape (p,)
+        Each pair's leaf: its packed key and its cell (:func:`_halo_pairs`).
+    origin, extent : tuple of int, length d
+        The box of the cells.
+
+    Returns
+    -------
+    touched : ndarray of int64, shape (t,)
+        Packed keys, ascending (``np.unique(leaf_key)``).
+    inverse : ndarray of int64, shape (p,)
+        Each pair's leaf as an index into ``touched``.
+    """
+    volume = int(np.prod(extent))
+    if volume > 4 * leaf_key.size + 4096:  # a sparse box: hashing beats a table of it
+        touched = np.unique(leaf_key)
+        return touched, np.searchsorted(touched, leaf_key)
+    seen = np.zeros(volume, dtype=bool)
+    seen[cell] = True
+    cells = np.flatnonzero(seen)
+    rank = np.empty(volume, dtype=np.int64)
+    rank[cells] = np.arange(cells.size)
+    touched = np.zeros(cells.size, dtype=np.int64)
+    for a, (o, e) in enumerate(zip(origin, extent, strict=True)):  # per axis
+        touched |= (cells % e + o) << (KEY_BITS * a)
+        cells = cells // e
+    return touched, rank[cell]
 
 
 def _moved_returns(
@@ -206,16 +284,64 @@ def advance_copies(
     copies), so the rule runs once per observed voxel and its result is shared; should
     the copies of a voxel ever differ, it runs on every copy instead.
     """
-    n = obs.n_voxels
+    unit, at, h, f = _voxel_units(hits, frees, voxel, obs.n_voxels)
+    one = advance(h, f, obs, at, cap)
+    if unit is None:
+        return one
+    return VoxelState(
+        one.hits[unit], one.frees[unit], one.position[unit], one.replace[unit], one.drop[unit]
+    )
+
+
+def _voxel_units(
+    hits: IntArray, frees: IntArray, voxel: IntArray, n: int
+) -> tuple[IntArray | None, IntArray, IntArray, IntArray]:
+    """The copies' states once per voxel, when every copy of a voxel agrees.
+
+    Parameters
+    ----------
+    hits, frees : ndarray of int, shape (p,)
+        The counts of each (voxel, leaf) copy.
+    voxel : ndarray of int64, shape (p,)
+        Each copy's voxel, in ``[0, n)``.
+    n : int
+        Observed voxels.
+
+    Returns
+    -------
+    unit : ndarray of int64, shape (p,), or None
+        Each copy's unit: its voxel when the copies agree (units are voxels), ``None``
+        when they differ (each copy is a unit of its own).
+    at : ndarray of int64
+        Each unit's voxel.
+    hits, frees : ndarray of int
+        Each unit's counts (for a voxel without copies, any).
+    """
     rep = np.zeros(n, dtype=np.int64)
     rep[voxel] = np.arange(voxel.size)  # one copy of each voxel (none: unused)
     h, f = hits[rep], frees[rep]
     if not (np.array_equal(h[voxel], hits) and np.array_equal(f[voxel], frees)):
-        return advance(hits, frees, obs, voxel, cap)
-    one = advance(h, f, obs, np.arange(n), cap)
-    return VoxelState(
-        one.hits[voxel], one.frees[voxel], one.position[voxel], one.replace[voxel], one.drop[voxel]
-    )
+        return None, voxel, hits, frees
+    return voxel, np.arange(n), h, f
+
+
+def _stored_counts(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint8]:
+    """The stored counts of leaves, zero for a new leaf or one not yet sized.
+
+    Returns
+    -------
+    ndarray of uint8, shape (len(leaves), 2, n_halo)
+    """
+    out = np.zeros((len(leaves), 2, n_halo), dtype=np.uint8)
+    rows = [j for j, leaf in enumerate(leaves) if leaf is not None]
+    counts = [ev.counts for ev in evidence_of([leaf for leaf in leaves if leaf is not None])]
+    sized = [c.shape[1] == n_halo for c in counts]
+    if not all(sized):
+        rows = list(itertools.compress(rows, sized))
+        counts = list(itertools.compress(counts, sized))
+    if rows:
+        out[rows] = _stack(counts)
+    return out
 
 
 def gather_observations(
@@ -225,6 +351,9 @@ def gather_observations(
 
     A leaf is *changed* (refitted) when what its GP sees moved (its effective counts or
     its kept returns), *kept* (stored, not refitted) when only its stored counts moved.
+    The rule runs once per observed voxel (every copy of a voxel holds the same state;
+    should copies differ, once per copy), and each leaf with new counts gets arrays of
+    its own.
 
     Parameters
     ----------
@@ -234,68 +363,77 @@ def gather_observations(
     config : MapConfig
         Uses ``lattice.evidence_cap`` and the resolved ``clear_scans``.
     lookup : callable
-        The current leaf of a packed key, or ``None``; only read.
+        The current leaf of a packed key, or ``None``; only read, once per touched
+        leaf in ascending key order.
 
     Returns
     -------
     Evidence
         ``new_items`` counts the (voxel, class) inputs of leaf GPs that changed.
     """
-    voxel, leaf_key, flat = halo_copies(obs, grid)
-    touched = np.unique(leaf_key)  # hashed: faster than sorting every pair
-    inverse = np.searchsorted(touched, leaf_key)
+    voxel, leaf_key, flat, cell, origin, extent = _halo_pairs(obs, grid)
+    touched, inverse = _touched_leaves(leaf_key, cell, origin, extent)
+    keys = touched.tolist()
     n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
-    old = np.zeros((touched.size, 2, n_halo), dtype=np.uint8)
-    current: list[Leaf | None] = []
-    for j, key in enumerate(touched.tolist()):  # one iteration per touched leaf
-        leaf = lookup(key)
-        current.append(leaf)
-        counts = None if leaf is None else lattice_evidence(leaf).counts
-        if counts is not None and counts.shape[1] == n_halo:
-            old[j] = counts
+    current = [lookup(key) for key in keys]  # one call per touched leaf
+    counts = _stored_counts(current, n_halo)
     cap = config.lattice.evidence_cap
-    at_h = inverse * (2 * n_halo) + flat  # each pair's return count in old.ravel()
-    flat_old = old.reshape(-1)
-    before_h = flat_old[at_h].astype(np.int64)
-    before_f = flat_old[at_h + n_halo].astype(np.int64)
-    state = advance_copies(before_h, before_f, obs, voxel, cap)
-    new = old.copy()
-    flat_new = new.reshape(-1)
-    flat_new[at_h] = state.hits
-    flat_new[at_h + n_halo] = state.frees
+    at_h = inverse * (2 * n_halo) + flat  # each pair's return count in counts.ravel()
+    flat_counts = counts.reshape(-1)
+    before_h = flat_counts[at_h].astype(np.int64)
+    before_f = flat_counts[at_h + n_halo].astype(np.int64)
+    # the rule and what changes, per unit (a voxel, or a copy should copies differ)
+    unit, at, h0, f0 = _voxel_units(before_h, before_f, voxel, obs.n_voxels)
+    state = advance(h0, f0, obs, at, cap)
     # what the leaf GP sees: its effective counts, and the kept returns
-    eh0, ef0 = effective_counts(before_h, before_f, cap, obs.clear_scans)
+    eh0, ef0 = effective_counts(h0, f0, cap, obs.clear_scans)
     eh1, ef1 = effective_counts(state.hits, state.frees, cap, obs.clear_scans)
     d_h, d_f = eh1 != eh0, ef1 != ef0
     moves = state.replace | state.drop
     effective = d_h | d_f | moves
-    stored = effective | (state.hits != before_h) | (state.frees != before_f)
+    stored = effective | (state.hits != h0) | (state.frees != f0)
+    if unit is None:  # each copy its own unit
+        copies = np.ones(h0.size, dtype=np.int64)
+        hits_p, frees_p, effective_p, stored_p = state.hits, state.frees, effective, stored
+    else:
+        copies = np.bincount(unit, minlength=h0.size)
+        hits_p, frees_p = state.hits[unit], state.frees[unit]
+        effective_p, stored_p = effective[unit], stored[unit]
+    flat_counts[at_h] = hits_p  # the counts become the new ones (a fresh array)
+    flat_counts[at_h + n_halo] = frees_p
     refit = np.zeros(touched.size, dtype=bool)
-    refit[inverse[effective]] = True
-    mv = np.flatnonzero(moves)
+    refit[inverse[effective_p]] = True
+    new_counts = np.zeros(touched.size, dtype=bool)
+    new_counts[inverse[stored_p]] = True
+    mv = np.flatnonzero(moves if unit is None else moves[unit])  # pairs whose return moves
+    mv_unit = mv if unit is None else unit[mv]
     returns = _moved_returns(
         current,
         inverse[mv],
         voxel[mv],
-        state.drop[mv],
-        state.replace[mv],
-        state.position[mv],
+        state.drop[mv_unit],
+        state.replace[mv_unit],
+        state.position[mv_unit],
         pack_keys(obs.keys),
         grid.dim,
     )
     changed: list[tuple[int, Leaf]] = []
     kept: list[tuple[int, Leaf]] = []
     touched_index = unpack_keys(touched, grid.dim)
-    for j in np.unique(inverse[stored]).tolist():  # one iteration per leaf with new counts
-        leaf = current[j]
+    sel = np.flatnonzero(new_counts)
+    for j, row, r in zip(sel.tolist(), counts[sel], refit[sel].tolist(), strict=True):
+        leaf = current[j]  # one iteration per leaf with new counts: arrays of its own
+        moved = returns.get(j)
         if leaf is None:
-            leaf = Leaf(touched_index[j].copy(), LatticeEvidence.empty(grid.dim))
-        ev = lattice_evidence(leaf)
-        hit_keys, hits = returns.get(j, (ev.hit_keys, ev.hits))
-        leaf = leaf.evolve(evidence=LatticeEvidence(new[j].copy(), hit_keys, hits))
-        (changed if refit[j] else kept).append((int(touched[j]), leaf))
-    gained = int(d_h.sum() + d_f.sum())
-    return Evidence(changed, touched.tolist(), gained, kept)
+            hit_keys, hits = moved or (np.zeros(0, np.int64), np.zeros((0, grid.dim)))
+            leaf = Leaf(touched_index[j].copy(), LatticeEvidence(row.copy(), hit_keys, hits))
+        else:
+            ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_counts
+            hit_keys, hits = (ev.hit_keys, ev.hits) if moved is None else moved
+            leaf = leaf.with_evidence(LatticeEvidence(row.copy(), hit_keys, hits))
+        (changed if r else kept).append((keys[j], leaf))
+    gained = int(copies[d_h].sum() + copies[d_f].sum())
+    return Evidence(changed, keys, gained, kept)
 
 
 def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
@@ -324,18 +462,34 @@ def return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: int) -> Retu
     A voxel seen occupied contributes its kept return, weighing ``min(counts[0, v],
     evidence_cap)``.
     """
+    evidence = evidence_of(leaves)
+    return _return_points(leaves, evidence, None, grid, evidence_cap)
+
+
+def _return_points(
+    leaves: list[Leaf],
+    evidence: list[LatticeEvidence],
+    hit_counts: NDArray[np.uint8] | None,
+    grid: LeafGrid,
+    evidence_cap: int,
+) -> Returns:
+    """:func:`return_points` of leaves whose evidence is read already.
+
+    ``hit_counts``: the leaves' return counts, shape (len(leaves), H), or ``None`` to
+    read them from ``evidence``.
+    """
     box, halo, d = grid.side + 2 * grid.halo_voxels, grid.halo_voxels, grid.dim
-    evidence = [lattice_evidence(leaf) for leaf in leaves]
     n_kept = np.array([ev.hit_keys.size for ev in evidence], dtype=np.int64)
     if not n_kept.sum():
         return Returns(np.zeros((0, d)), np.zeros(0), n_kept)
-    index = np.stack([leaf.index for leaf in leaves])
+    index = _stack([leaf.index for leaf in leaves])
     owner = np.repeat(np.arange(len(leaves)), n_kept)
     keys = np.concatenate([ev.hit_keys for ev in evidence])
     corner = index[owner] * grid.side - halo
     flat = (unpack_keys(keys, d) - corner) @ (box ** np.arange(d, dtype=np.int64))
-    counts = np.stack([ev.counts[0] for ev in evidence])
-    weights = np.minimum(counts[owner, flat], evidence_cap).astype(np.float64)
+    if hit_counts is None:
+        hit_counts = np.stack([ev.counts[0] for ev in evidence])
+    weights = np.minimum(hit_counts[owner, flat], evidence_cap).astype(np.float64)
     lo, _ = grid.box(index)
     pos = np.concatenate([ev.hits for ev in evidence]) - lo[owner]
     return Returns(pos, weights, n_kept)
@@ -359,12 +513,14 @@ def fit_lattice_leaves(
         return []
     lc = config.lattice
     tables = map_tables(config, hp)
-    stored = np.stack([lattice_evidence(leaf).counts for leaf in leaves])
+    evidence = evidence_of(leaves)
+    stored = _stack([ev.counts for ev in evidence])
     n_halo = tables.phi.shape[0]
     if stored.shape[2] != n_halo:
         raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
     hits, frees = effective_counts(stored[:, 0], stored[:, 1], lc.evidence_cap, config.clear_scans)
-    points = return_points(leaves, LeafGrid.from_config(config), lc.evidence_cap)
+    grid = LeafGrid.from_config(config)
+    points = _return_points(leaves, evidence, stored[:, 0], grid, lc.evidence_cap)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
     parts = [

@@ -81,11 +81,37 @@ class Leaf:
         ``dataclasses.replace`` without its per-field cost, which dominates 3D inserts
         touching thousands of leaves. Unknown field names raise ``TypeError``.
         """
-        unknown = changes.keys() - _LEAF_FIELDS
-        if unknown:
+        if not _LEAF_FIELDS.issuperset(changes):
+            unknown = changes.keys() - _LEAF_FIELDS
             raise TypeError(f"Leaf has no field {sorted(unknown)[0]!r}")
         leaf = object.__new__(Leaf)
         leaf.__dict__ = {**self.__dict__, **changes}
+        return leaf
+
+    def with_evidence(self, evidence: LeafEvidence) -> Leaf:
+        """A shallow copy holding ``evidence``: ``evolve(evidence=evidence)``, for hot loops."""
+        fields = self.__dict__.copy()
+        fields["evidence"] = evidence
+        leaf = object.__new__(Leaf)
+        leaf.__dict__ = fields
+        return leaf
+
+    def refitted(
+        self, mean: Float32Array, var: Float32Array, prob: Float32Array, pruned: bool
+    ) -> Leaf:
+        """A shallow copy with fresh voxel values and one more refit, for hot loops.
+
+        Equal to ``evolve(mean=mean, var=var, prob=prob, pruned=pruned,
+        refits=self.refits + 1)``.
+        """
+        fields = self.__dict__.copy()
+        fields["mean"] = mean
+        fields["var"] = var
+        fields["prob"] = prob
+        fields["pruned"] = pruned
+        fields["refits"] = fields["refits"] + 1
+        leaf = object.__new__(Leaf)
+        leaf.__dict__ = fields
         return leaf
 
     @property
@@ -199,6 +225,7 @@ class LeafStore:
         self._leaves: OrderedDict[int, Leaf] = OrderedDict()  # in RAM, LRU first
         self._keys: set[int] = set()  # every key, in RAM or in the file
         self._dirty: set[int] = set()  # in RAM and not yet in the file
+        self._sizes: dict[int, int] = {}  # each RAM leaf's nbytes, as _nbytes counts it
         self._nbytes = 0
         self.budget_bytes = budget_bytes
         self.backing: LeafBacking | None = None
@@ -230,7 +257,8 @@ class LeafStore:
             return None
         leaf = self.backing.read_leaf(key)
         self._leaves[key] = leaf
-        self._nbytes += leaf.nbytes
+        size = self._sizes[key] = leaf.nbytes
+        self._nbytes += size
         self.loads += 1
         return leaf
 
@@ -255,32 +283,31 @@ class LeafStore:
         stamp only (it orders least-recently-used eviction under a memory budget).
         """
         if scan is not None:
+            get = self.get
             for key in touched:  # one iteration per touched leaf
-                leaf = self.get(key)
+                leaf = get(key)
                 if leaf is not None:
                     leaf.touched = scan
+        resident, sizes, move = self._leaves, self._sizes, self._leaves.move_to_end
+        keys, dirty = self._keys, self._dirty
         for key, leaf in leaves:  # one iteration per new leaf
+            key = int(key)
             if scan is not None:
                 leaf.touched = scan
-            self._put(key, leaf)
-
-    def _put(self, key: int, leaf: Leaf) -> None:
-        """Insert or replace a leaf (dirty until :meth:`persisted`)."""
-        key = int(key)
-        old = self._leaves.get(key)
-        self._nbytes += leaf.nbytes - (old.nbytes if old is not None else 0)
-        self._leaves[key] = leaf
-        self._leaves.move_to_end(key)
-        self._keys.add(key)
-        self._dirty.add(key)
+            size = leaf.nbytes
+            self._nbytes += size - sizes.get(key, 0)
+            sizes[key] = size
+            resident[key] = leaf
+            move(key)
+            keys.add(key)
+            dirty.add(key)
 
     def remove(self, keys: Iterable[int]) -> None:
         """Drop leaves from the map (a correction left them without evidence)."""
         for key in keys:  # one iteration per removed leaf
             key = int(key)
-            old = self._leaves.pop(key, None)
-            if old is not None:
-                self._nbytes -= old.nbytes
+            if self._leaves.pop(key, None) is not None:
+                self._nbytes -= self._sizes.pop(key)
             self._keys.discard(key)
             self._dirty.discard(key)
 
@@ -306,8 +333,8 @@ class LeafStore:
                 break
             if key in self._dirty:
                 continue
-            leaf = self._leaves.pop(key)
-            self._nbytes -= leaf.nbytes
+            del self._leaves[key]
+            self._nbytes -= self._sizes.pop(key)
             evicted += 1
         self.evictions += evicted
         return evicted
