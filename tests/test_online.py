@@ -642,7 +642,7 @@ def test_coarser_free_voxels_keep_fewer_pieces() -> None:
 
 
 def test_free_weight_default_and_round_trip() -> None:
-    assert LatticeConfig().free_weight == 0.06
+    assert LatticeConfig().free_weight == 0.05
     given = MapConfig(dim=2, lattice=LatticeConfig(free_weight=0.5))
     for config in (MapConfig(dim=2), MapConfig(dim=3), given):
         assert MapConfig.from_dict(config.to_dict()) == config
