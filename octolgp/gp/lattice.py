@@ -345,11 +345,10 @@ def lattice_posterior(
     if compiled:
         prec = 1.0 / tables.noise_variance
         if returns is None:
-            features, weights = np.zeros((0, m)), np.zeros(0)
+            points, weights = np.zeros((0, tables.geometry.dim)), np.zeros(0)
             offsets = np.zeros(n_leaves + 1, dtype=np.int64)
         else:
-            features = tables.features(returns.points)
-            weights, offsets = returns.weights * prec, returns.offsets
+            points, weights, offsets = returns.points, returns.weights * prec, returns.offsets
         return lattice_kernel.leaf_posteriors(
             None if returns is not None else hits,
             frees,
@@ -359,7 +358,11 @@ def lattice_posterior(
             tables.pairs,
             tables.psi_t,
             tables.residual,
-            features,
+            tables.inducing,
+            tables.chol,
+            tables.hp.length_scale,
+            tables.hp.signal_variance,
+            points,
             weights,
             offsets,
         )

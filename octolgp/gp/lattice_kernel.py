@@ -8,7 +8,10 @@ back) cost more than the arithmetic a leaf needs. This kernel does one leaf at a
 in registers and cache:
 
 1. ``A = I + Σ_v w_v φ_v φ_vᵀ`` and ``b = Σ_v w_v y_v φ_v`` over the observed voxels only
-   (then the returns at their positions), upper triangle;
+   (one contiguous pass over the voxel's packed products ``φ_a φ_c``), then the returns
+   at their positions, whose features ``L⁻¹ k_u(x)`` (the Matérn 3/2 to each lattice
+   point, then a forward substitution) are computed here rather than stacked for all
+   leaves beforehand, upper triangle;
 2. ``A = Uᵀ U`` in place (right-looking Cholesky, rows contiguous);
 3. ``Z = U⁻ᵀ Ψᵀ`` and ``c = U⁻ᵀ b`` by forward substitution over rows of length ``V``;
 4. ``μ = Zᵀ c`` and ``σ² = residual + Σ_a Z_a²``.
@@ -43,7 +46,10 @@ def _leaf_posteriors(
     pairs: FloatArray,
     psi_t: FloatArray,
     residual: FloatArray,
-    features: FloatArray,
+    inducing: FloatArray,
+    chol: FloatArray,
+    kernel: FloatArray,
+    points: FloatArray,
     weights: FloatArray,
     offsets: NDArray[np.int64],
     mean: FloatArray,
@@ -53,11 +59,14 @@ def _leaf_posteriors(
     n, n_halo = f.shape
     has_h = h.shape[0] > 0
     m = phi.shape[1]
-    n_pairs = pairs.shape[1]
+    dim = inducing.shape[1]
     n_vox = psi_t.shape[1]
+    n_pairs = pairs.shape[1]
+    scale, sigma2 = kernel[0], kernel[1]  # sqrt(3) / length scale, signal variance
     A = np.empty((m, m))
-    upper = np.empty(n_pairs)
     b = np.empty(m)
+    upper = np.empty(n_pairs)
+    p = np.empty(m)
     Z = np.empty((m, n_vox))
     for j in range(n):  # one leaf per iteration
         upper[:] = 0.0
@@ -69,22 +78,12 @@ def _leaf_posteriors(
             if w == 0.0:
                 continue
             y = (hv - fv) * prec
-            p = phi[v]
-            q = pairs[v]
+            q = phi[v]
             for a in range(m):
-                b[a] += y * p[a]
+                b[a] += y * q[a]
+            q = pairs[v]
             for c in range(n_pairs):  # the upper triangle of w φ φᵀ, packed
                 upper[c] += w * q[c]
-        for r in range(offsets[j], offsets[j + 1]):  # the returns at their positions
-            w = weights[r]
-            p = features[r]
-            s = 0
-            for a in range(m):
-                wa = w * p[a]
-                b[a] += wa
-                for c in range(a, m):
-                    upper[s] += wa * p[c]
-                    s += 1
         s = 0
         for a in range(m):  # A = I + the packed upper triangle
             row = A[a]
@@ -92,6 +91,26 @@ def _leaf_posteriors(
                 row[c] = upper[s]
                 s += 1
             row[a] += 1.0
+        for r in range(offsets[j], offsets[j + 1]):  # the returns at their positions
+            for a in range(m):  # k_u(x): Matérn 3/2 to each lattice point
+                d2 = 0.0
+                for e in range(dim):
+                    t = inducing[a, e] - points[r, e]
+                    d2 += t * t
+                x = scale * np.sqrt(d2)
+                p[a] = sigma2 * (1.0 + x) * np.exp(-x)
+            for a in range(m):  # φ = L⁻¹ k_u(x), forward substitution
+                t = p[a]
+                for c in range(a):
+                    t -= chol[a, c] * p[c]
+                p[a] = t / chol[a, a]
+            w = weights[r]
+            for a in range(m):
+                wa = w * p[a]
+                b[a] += wa
+                row = A[a]
+                for c in range(a, m):
+                    row[c] += wa * p[c]
         for k in range(m):  # A = Uᵀ U, U in the upper triangle
             rk = A[k]
             d = np.sqrt(rk[k])
@@ -153,7 +172,11 @@ def leaf_posteriors(
     pairs: FloatArray,
     psi_t: FloatArray,
     residual: FloatArray,
-    features: FloatArray,
+    inducing: FloatArray,
+    chol: FloatArray,
+    length_scale: float,
+    signal_variance: float,
+    points: FloatArray,
     weights: FloatArray,
     offsets: NDArray[np.int64],
 ) -> tuple[FloatArray, FloatArray]:
@@ -177,8 +200,15 @@ def leaf_posteriors(
         Whitened features of the leaf voxel centres, transposed.
     residual : ndarray of shape (V,)
         ``k(x, x) − |ψ(x)|²``.
-    features : ndarray of shape (R, m)
-        Whitened features of the returns at their positions (target +1), leaf after leaf.
+    inducing : ndarray of shape (m, d)
+        The lattice relative to a leaf's lower corner, metres.
+    chol : ndarray of shape (m, m)
+        Lower Cholesky factor ``L`` of ``K_uu``: a return's feature is ``L⁻¹ k_u(x)``.
+    length_scale, signal_variance : float
+        The Matérn 3/2 kernel of ``k_u``.
+    points : ndarray of shape (R, d)
+        The returns at their positions relative to their leaf's lower corner (target
+        +1), metres, leaf after leaf.
     weights : ndarray of shape (R,)
         Their precisions (weight ``/ σn²``).
     offsets : ndarray of int64, shape (n + 1,)
@@ -200,6 +230,7 @@ def leaf_posteriors(
     mean = np.empty((n, n_vox))
     var = np.empty((n, n_vox))
     c = np.ascontiguousarray
+    kernel = np.array([np.sqrt(3.0) / length_scale, signal_variance])
     _compiled()(
         np.zeros((0, 0), dtype=f.dtype) if h is None else c(h),
         c(f),
@@ -209,7 +240,10 @@ def leaf_posteriors(
         c(pairs),
         c(psi_t),
         c(residual),
-        c(features, dtype=np.float64).reshape(-1, phi.shape[1]),
+        c(inducing, dtype=np.float64),
+        c(chol, dtype=np.float64),
+        kernel,
+        c(points, dtype=np.float64).reshape(-1, inducing.shape[1]),
         c(weights, dtype=np.float64),
         c(offsets, dtype=np.int64),
         mean,

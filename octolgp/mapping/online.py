@@ -57,7 +57,7 @@ from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads
 from octolgp.mapping.store import Leaf, LeafStore, MapStorage
 from octolgp.mapping.update import ScanUpdate
-from octolgp.mapping.workers import Workers
+from octolgp.mapping.workers import Workers, collector_paused
 from octolgp.scan import Scan
 from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
 
@@ -79,15 +79,16 @@ R = TypeVar("R")
 def _step_of_state(method: Callable[..., R]) -> Callable[..., R]:
     """Run a method that changes the map as one step: alone, on an open map, all or nothing.
 
-    The call holds the map's lock (calls from several threads run one at a time), is
-    refused on a closed, read-only or broken map, and when it raises before any write
+    The call holds the map's lock (calls from several threads run one at a time), runs
+    with the cyclic garbage collector paused (:func:`~octolgp.mapping.workers.collector_paused`),
+    is refused on a closed, read-only or broken map, and when it raises before any write
     reached the store the map's counters and learning buffer are put back as they
     were and the engine's caches are dropped, so the map is exactly as before the call.
     """
 
     @functools.wraps(method)
     def step(self: OnlineMap, *args: Any, **kwargs: Any) -> R:
-        with self._lock:
+        with self._lock, collector_paused():
             self._check(method.__name__, write=True)
             before = (self.n_scans, self.hyperparameters, list(self._bootstrap.scans))
             writes = self._writes
