@@ -450,8 +450,30 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
         return obs
     weak = np.zeros(obs.hits.size, dtype=np.int64)
     weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
+    obs = dataclasses.replace(obs, weak_frees=weak)
+    if len(scan_list) == 1:
+        return one_scan_summary(obs, k)
     strong = free_codes[~np.isin(free_codes, weak_codes, assume_unique=True)]
-    return _summarise(dataclasses.replace(obs, weak_frees=weak), hit_codes, code_points, strong, k)
+    return _summarise(obs, hit_codes, code_points, strong, k)
+
+
+def one_scan_summary(obs: VoxelObservations, clear_scans: int) -> VoxelObservations:
+    """The newer-evidence summary of one scan's observations (:func:`_summarise`'s, directly).
+
+    In one scan a voxel is seen occupied or free, never both: one with a return has no
+    free look before or after it and nothing to restart; one without has its strong
+    free look (if any) as both its head and its tail.
+    """
+    held = obs.hits > 0
+    free_run = np.where(held, 0, obs.strong_frees)
+    return dataclasses.replace(
+        obs,
+        clear_scans=clear_scans,
+        head_frees=free_run,
+        tail_frees=free_run.copy(),
+        restart_hits=np.zeros(obs.hits.size, dtype=np.int64),
+        restart_hit=np.full(obs.first_hit.shape, np.nan),
+    )
 
 
 def _combine(

@@ -283,9 +283,12 @@ class LeafStore:
         ``scan`` number, stamped ``touched = scan``; the other ``touched`` keys get the
         stamp only (it orders least-recently-used eviction under a memory budget).
         """
+        leaves = list(leaves)
         if scan is not None:
-            get = self.get
-            for key in touched:  # one iteration per touched leaf
+            get, replaced = self.get, {int(key) for key, _ in leaves}
+            for key in touched:  # one iteration per touched leaf not replaced below
+                if key in replaced:
+                    continue
                 leaf = get(key)
                 if leaf is not None:
                     leaf.touched = scan
