@@ -38,6 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.config import MapConfig
+from octolgp.geometry import ray_kernel
 from octolgp.geometry.keys import KEY_BITS, pack_keys, unpack_keys
 from octolgp.scan import Scan
 from octolgp.training import IntArray, check_scans, split_beams, stack_beams
@@ -131,9 +132,21 @@ def sorted_unique(values: IntArray) -> IntArray:
     return out
 
 
-def _unique_counts(values: IntArray) -> tuple[IntArray, IntArray]:
-    """Sorted unique values and how often each occurs."""
-    a = np.sort(values)
+def merge_unique(*runs: IntArray) -> IntArray:
+    """The sorted unique values of ascending int64 arrays (a stable sort merges the runs)."""
+    c = np.sort(np.concatenate([np.zeros(0, dtype=np.int64), *runs]), kind="stable")
+    if c.size == 0:
+        return c
+    keep = np.empty(c.size, dtype=bool)
+    keep[0] = True
+    np.not_equal(c[1:], c[:-1], out=keep[1:])
+    out: IntArray = c[keep]
+    return out
+
+
+def _unique_counts(values: IntArray, ascending: bool = False) -> tuple[IntArray, IntArray]:
+    """Sorted unique values and how often each occurs (``ascending``: already sorted)."""
+    a = values if ascending else np.sort(values)
     if a.size == 0:
         return a, np.zeros(0, dtype=np.int64)
     starts = np.flatnonzero(np.r_[True, a[1:] != a[:-1]])
@@ -254,6 +267,8 @@ def _free_codes(
     resolution: float,
     tree_depth: int,
     near: np.ndarray | None = None,
+    *,
+    compiled: bool | None = None,
 ) -> tuple[IntArray, IntArray]:
     """Unique (scan, voxel) codes of the voxels the free segments pass through.
 
@@ -282,6 +297,10 @@ def _free_codes(
         OctoMap key depth.
     near : ndarray of shape (b,), optional
         Per segment, metres before its end (``inf``: all of it).
+    compiled : bool, optional
+        Walk the segments with the compiled loop (:mod:`octolgp.geometry.ray_kernel`)
+        or compute the crossings with numpy; by default compiled where numba imports.
+        Both give the same codes.
 
     Returns
     -------
@@ -337,10 +356,34 @@ def _free_codes(
     parts: list[IntArray] = []
     near_parts: list[IntArray] = []
     ends = np.cumsum(per_seg)
+    if compiled is None:
+        compiled = ray_kernel.AVAILABLE
+    if compiled:
+        move = step * stride
+        size = np.abs(du)
+        enter = enter_near if near is not None else np.full(n_seg, np.inf)
     lo = 0
-    while lo < n_seg:  # blocks of about BLOCK_VOXELS voxels
+    while lo < n_seg:  # blocks of about BLOCK_VOXELS voxels (all at once when compiled)
         hi = int(np.searchsorted(ends, ends[lo] - per_seg[lo] + BLOCK_VOXELS, side="right"))
-        hi = max(hi, lo + 1)
+        hi = n_seg if compiled and dense else max(hi, lo + 1)
+        if compiled:  # the compiled walk marks the maps, or lists the block's voxels
+            s = slice(lo, hi)
+            listed, listed_near = ray_kernel.walk_segments(
+                start[s],
+                move[s],
+                crossings[s],
+                gap[s],
+                size[s],
+                enter[s],
+                far_map if dense else None,
+                near_map if dense else None,
+            )
+            if not dense:
+                if near is not None:
+                    near_parts.append(sorted_unique(listed[listed_near]))
+                parts.append(sorted_unique(listed[~listed_near]))
+            lo = hi
+            continue
         index = [start[lo:hi]]  # each segment's origin voxel, entered at t = 0
         t_in = [np.zeros(hi - lo)]
         owner = [np.arange(lo, hi)]
@@ -379,12 +422,12 @@ def _free_codes(
         if near is None:
             return codes, none
         return codes, codes[near_map[cell] & ~far_map[cell]]
-    far = sorted_unique(np.concatenate(parts))
+    far = merge_unique(*parts)
     if near is None:
         return far, none
-    close_codes = sorted_unique(np.concatenate(near_parts))
+    close_codes = merge_unique(*near_parts)
     only = close_codes[~np.isin(close_codes, far, assume_unique=True)]
-    return sorted_unique(np.concatenate([far, only])), only
+    return merge_unique(far, only), only
 
 
 def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
@@ -438,9 +481,10 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     free_codes = free_codes[~np.isin(free_codes, hit_codes, assume_unique=True)]
     weak_codes = weak_codes[~np.isin(weak_codes, hit_codes, assume_unique=True)]
     mask = (1 << (KEY_BITS * dim)) - 1
-    hit_vox, hit_n = _unique_counts(hit_codes & mask)
-    free_vox, free_n = _unique_counts(free_codes & mask)
-    weak_vox, weak_n = _unique_counts(weak_codes & mask)
+    one = len(scan_list) == 1  # codes of one scan ascend as their voxels do
+    hit_vox, hit_n = _unique_counts(hit_codes & mask, one)
+    free_vox, free_n = _unique_counts(free_codes & mask, one)
+    weak_vox, weak_n = _unique_counts(weak_codes & mask, one)
     # the first return per voxel: codes ascend by scan, a stable sort keeps that order
     order = np.argsort(hit_codes & mask, kind="stable")
     ordered = (hit_codes & mask)[order]
@@ -485,7 +529,7 @@ def _combine(
     dim: int,
 ) -> VoxelObservations:
     """Static observations from sorted unique packed voxels, counts and first returns."""
-    packed = sorted_unique(np.concatenate([hit_vox, free_vox]))
+    packed = merge_unique(hit_vox, free_vox)
     hits = np.zeros(packed.size, dtype=np.int64)
     frees = np.zeros(packed.size, dtype=np.int64)
     first_hit = np.full((packed.size, dim), np.nan)
