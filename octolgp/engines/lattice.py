@@ -518,22 +518,27 @@ def fit_lattice_leaves(
     n_halo = tables.phi.shape[0]
     if stored.shape[2] != n_halo:
         raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
-    hits, frees = effective_counts(stored[:, 0], stored[:, 1], lc.evidence_cap, config.clear_scans)
     grid = LeafGrid.from_config(config)
     points = _return_points(leaves, evidence, stored[:, 0], grid, lc.evidence_cap)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    parts = [
-        (hits[lo:hi], frees[lo:hi], points.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)
-    ]
+    parts = [(stored[lo:hi], points.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)]
 
-    def run(part: tuple[np.ndarray, np.ndarray, Returns]) -> tuple[np.ndarray, np.ndarray]:
-        return lattice_posterior(tables, part[0], part[1], lc.free_weight, part[2])
+    def run(part: tuple[NDArray[np.uint8], Returns]) -> tuple[np.ndarray, ...]:
+        """Counts → latent posterior (stored as float32) → P(occupied) (on a pool thread).
+
+        P stays float64 here: pruning decides on it before it is stored as float32.
+        """
+        counts, returns = part
+        hits, frees = effective_counts(
+            counts[:, 0], counts[:, 1], lc.evidence_cap, config.clear_scans
+        )
+        mean, var = lattice_posterior(tables, hits, frees, lc.free_weight, returns)
+        prob = latent_occupancy(mean, var, hp)
+        return mean.astype(np.float32), var.astype(np.float32), prob
 
     results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
-    mean = np.concatenate([r[0] for r in results])
-    var = np.concatenate([r[1] for r in results])
-    prob = latent_occupancy(mean, var, hp)
+    mean, var, prob = (np.concatenate([r[i] for r in results]) for i in range(3))
     fitted = fitted_leaves(leaves, mean, var, prob, config.online.prune)
     return [LeafFit(leaf, 0) for leaf in fitted]
 

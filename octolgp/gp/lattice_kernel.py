@@ -30,6 +30,7 @@ from collections.abc import Callable
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
 
 from octolgp.scan import FloatArray
 
@@ -47,7 +48,7 @@ def _leaf_posteriors(
     psi_t: FloatArray,
     residual: FloatArray,
     inducing: FloatArray,
-    chol: FloatArray,
+    inv_chol_t: FloatArray,
     kernel: FloatArray,
     points: FloatArray,
     weights: FloatArray,
@@ -67,6 +68,7 @@ def _leaf_posteriors(
     b = np.empty(m)
     upper = np.empty(n_pairs)
     p = np.empty(m)
+    kx = np.empty(m)
     Z = np.empty((m, n_vox))
     for j in range(n):  # one leaf per iteration
         upper[:] = 0.0
@@ -98,18 +100,19 @@ def _leaf_posteriors(
                     t = inducing[a, e] - points[r, e]
                     d2 += t * t
                 x = scale * np.sqrt(d2)
-                p[a] = sigma2 * (1.0 + x) * np.exp(-x)
-            for a in range(m):  # φ = L⁻¹ k_u(x), forward substitution
-                t = p[a]
-                for c in range(a):
-                    t -= chol[a, c] * p[c]
-                p[a] = t / chol[a, a]
+                kx[a] = sigma2 * (1.0 + x) * np.exp(-x)
+            p[:] = 0.0
+            for c in range(m):  # φ = L⁻¹ k_u(x), column by column of L⁻¹ (rows of its transpose)
+                kc = kx[c]
+                lc = inv_chol_t[c]
+                for a in range(m):
+                    p[a] += kc * lc[a]
             w = weights[r]
-            for a in range(m):
+            for a in range(m):  # whole rows (the part below the diagonal is never read)
                 wa = w * p[a]
                 b[a] += wa
                 row = A[a]
-                for c in range(a, m):
+                for c in range(m):
                     row[c] += wa * p[c]
         for k in range(m):  # A = Uᵀ U, U in the upper triangle
             rk = A[k]
@@ -241,7 +244,7 @@ def leaf_posteriors(
         c(psi_t),
         c(residual),
         c(inducing, dtype=np.float64),
-        c(chol, dtype=np.float64),
+        c(solve_triangular(chol, np.eye(chol.shape[0]), lower=True).T),
         kernel,
         c(points, dtype=np.float64).reshape(-1, inducing.shape[1]),
         c(weights, dtype=np.float64),
