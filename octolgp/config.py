@@ -293,12 +293,13 @@ class OnlineConfig:
         much slower in 3D (``BENCHMARKS.md``, "Lattice engine").
     leaf_depth : int or None
         OctoMap tree depth of the leaves; a leaf spans ``2**(tree_depth - leaf_depth)``
-        voxels per axis. ``None`` (default): 16 × 16 voxels in 2D and, in 3D, 4 × 4 × 4
-        for the lattice engine (its cost per voxel grows with the leaf) and 8 × 8 × 8
-        for the exact one.
+        voxels per axis. ``None`` (default): 16 × 16 voxels in 2D and 8 × 8 × 8 in 3D
+        (the lattice engine fits a 3D leaf in tiles of 4 × 4 × 4, whose GP is cheaper per
+        voxel: ``LatticeConfig.tile_voxels``).
     halo : float
-        Overlap margin around each leaf as a fraction of its edge, in ``[0, 0.5)``.
-        Default 0.2.
+        Overlap margin around each leaf as a fraction of its edge, in ``[0, 0.5)`` (of
+        its tiles' edge where the lattice engine fits a leaf in smaller tiles, rounded
+        up to whole voxels). Default 0.2.
     learn_scans : int or None
         With ``MapConfig.hyperparameters=None`` the first this many scans are buffered,
         the hyperparameters are learnt on them and then held fixed. ``None`` (default):
@@ -403,6 +404,15 @@ class LatticeConfig:
         a wall crosses wall voxels just before its return. No-return beams never count
         towards forgetting either (a dark or glass surface returns nothing). ``None``
         (default): 5 voxels.
+    tile_voxels : int or None
+        Edge, in voxels, of the tiles a leaf's GP is fitted in: each tile is a local GP of
+        its own on its halo box (``OnlineConfig.halo`` of the tile's edge, rounded up to
+        whole voxels) with its own inducing lattice, and the leaf stores the tiles' halo
+        boxes together. A tile costs ``k**6`` in its lattice, so small tiles are cheap per
+        voxel, while a leaf costs Python bookkeeping per step, so large leaves are cheap
+        per voxel: the map's values are those of leaves the size of a tile, with fewer
+        leaves to keep. A power of two up to the leaf's edge. ``None`` (default): 4 in 3D
+        (leaves of 8, so 8 tiles a leaf), the leaf's edge in 2D.
     """
 
     evidence_cap: int = 1
@@ -410,6 +420,7 @@ class LatticeConfig:
     inducing_spacing: float | None = None
     max_inducing_per_axis: int | None = None
     clear_margin: float | None = None
+    tile_voxels: int | None = None
 
     def __post_init__(self) -> None:
         _integer("LatticeConfig", "evidence_cap", self.evidence_cap, 1, 255)
@@ -420,6 +431,12 @@ class LatticeConfig:
             _integer("LatticeConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 2, 16)
         if self.clear_margin is not None:
             _positive("LatticeConfig", "clear_margin", self.clear_margin, allow_zero=True)
+        if self.tile_voxels is not None:
+            _integer("LatticeConfig", "tile_voxels", self.tile_voxels, 1, 1 << 15)
+            if self.tile_voxels & (self.tile_voxels - 1):
+                raise OctolgpError(
+                    f"LatticeConfig.tile_voxels must be a power of two, got {self.tile_voxels}"
+                )
 
 
 @dataclass(frozen=True, slots=True)
@@ -461,9 +478,13 @@ DEFAULT_MAX_INDUCING = MappingProxyType({2: 12, 3: 4})
 """The default ``max_inducing_per_axis`` per dimension (see :class:`LatticeConfig`)."""
 
 LEAF_VOXELS_LOG2 = MappingProxyType(
-    {(2, "lattice"): 4, (2, "exact"): 4, (3, "lattice"): 2, (3, "exact"): 3}
+    {(2, "lattice"): 4, (2, "exact"): 4, (3, "lattice"): 3, (3, "exact"): 3}
 )
 """The default leaf edge, log2 of voxels, per (dimension, engine) (see :class:`OnlineConfig`)."""
+
+DEFAULT_TILE_VOXELS = MappingProxyType({3: 4})
+"""The default ``tile_voxels`` per dimension, at most the leaf's edge; absent: the leaf's edge
+(see :class:`LatticeConfig`)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -531,6 +552,12 @@ class MapConfig:
                 f"OnlineConfig.leaf_depth must be in 1..MapConfig.tree_depth "
                 f"({self.tree_depth}), got {leaf_depth}"
             )
+        side = 1 << (self.tree_depth - leaf_depth)
+        if self.lattice.tile_voxels is not None and self.lattice.tile_voxels > side:
+            raise OctolgpError(
+                f"LatticeConfig.tile_voxels must be at most the leaf's edge ({side} voxels), "
+                f"got {self.lattice.tile_voxels}"
+            )
 
     def resolve(self) -> MapConfig:
         """Fill in every derived default (``n_jobs`` excepted); return the new config.
@@ -549,6 +576,7 @@ class MapConfig:
             inducing_spacing=self.inducing_spacing,
             max_inducing_per_axis=self.max_inducing_per_axis,
             clear_margin=self.clear_margin,
+            tile_voxels=self.tile_voxels,
         )
         training = dataclasses.replace(self.training, free_margin=self.free_margin)
         return dataclasses.replace(self, online=online, lattice=lattice, training=training)
@@ -583,6 +611,14 @@ class MapConfig:
         if self.lattice.max_inducing_per_axis is not None:
             return self.lattice.max_inducing_per_axis
         return DEFAULT_MAX_INDUCING[self.dim]
+
+    @property
+    def tile_voxels(self) -> int:
+        """Edge of the lattice engine's GP tiles (``lattice.tile_voxels`` or its default)."""
+        side = 1 << (self.tree_depth - self.leaf_depth)
+        if self.lattice.tile_voxels is not None:
+            return self.lattice.tile_voxels
+        return min(DEFAULT_TILE_VOXELS.get(self.dim, side), side)
 
     @property
     def clear_scans(self) -> int:

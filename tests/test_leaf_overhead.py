@@ -9,6 +9,7 @@ the store's LRU order, dirty set and byte count, after every insert.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Iterable
 
 import numpy as np
@@ -119,15 +120,52 @@ def reference_return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: in
 def reference_fit(
     leaves: list[Leaf], config: MapConfig, hp: Hyperparameters, pool: object = None
 ) -> list[LeafFit]:
-    """The lattice fit on one thread, its inputs read and its leaves made one by one."""
+    """The lattice fit on one thread, tile by tile, its inputs read and its leaves made one
+    by one: each tile's halo box sliced out of its leaf's, its returns picked one by one."""
     if not leaves:
         return []
     lc = config.lattice
-    stored = np.stack([lattice_evidence(leaf).counts for leaf in leaves])
-    hits, frees = effective_counts(stored[:, 0], stored[:, 1], lc.evidence_cap, config.clear_scans)
-    points = reference_return_points(leaves, LeafGrid.from_config(config), lc.evidence_cap)
+    grid = LeafGrid.from_config(config)
+    side, halo, d, t = grid.side, grid.halo_voxels, grid.dim, config.tile_voxels
+    box, per_axis = side + 2 * halo, side // t
+    tile_grid = dataclasses.replace(grid, leaf_depth=grid.leaf_depth + int(np.log2(per_axis)))
+    tiles = [o[::-1] for o in itertools.product(range(per_axis), repeat=d)]  # x fastest
+    hit_rows, free_rows, tile_points = [], [], []
+    for leaf in leaves:
+        ev = lattice_evidence(leaf)
+        h, f = effective_counts(ev.counts[0], ev.counts[1], lc.evidence_cap, config.clear_scans)
+        h, f = h.reshape((box,) * d), f.reshape((box,) * d)  # [z, y, x]
+        coords = unpack_keys(ev.hit_keys, d) - (leaf.index * side - halo)
+        flat = coords @ (box ** np.arange(d))
+        for o in tiles:
+            lo = np.array(o) * t
+            window = tuple(slice(lo[a], lo[a] + t + 2 * halo) for a in reversed(range(d)))
+            hit_rows.append(h[window].ravel())
+            free_rows.append(f[window].ravel())
+            inside = [
+                i
+                for i in range(coords.shape[0])
+                if ((coords[i] >= lo) & (coords[i] < lo + t + 2 * halo)).all()
+            ]
+            corner, _ = tile_grid.box((leaf.index * per_axis + np.array(o))[None])
+            weights = np.minimum(ev.counts[0][flat[inside]], lc.evidence_cap).astype(float)
+            tile_points.append((ev.hits[inside] - corner[0], weights))
     tables = map_tables(config, hp)
-    mean, var = lattice_posterior(tables, hits, frees, lc.free_weight, points)
+    tile_mean, tile_var = lattice_posterior(
+        tables,
+        np.array(hit_rows),
+        np.array(free_rows),
+        lc.free_weight,
+        Returns.from_list(tile_points, d),
+    )
+    mean = np.empty((len(leaves),) + (side,) * d)
+    var = np.empty_like(mean)
+    for j, q in itertools.product(range(len(leaves)), range(len(tiles))):
+        lo = np.array(tiles[q]) * t
+        inner = (j, *(slice(lo[a], lo[a] + t) for a in reversed(range(d))))
+        mean[inner] = tile_mean[j * len(tiles) + q].reshape((t,) * d)
+        var[inner] = tile_var[j * len(tiles) + q].reshape((t,) * d)
+    mean, var = mean.reshape(len(leaves), -1), var.reshape(len(leaves), -1)
     prob = latent_occupancy(mean, var, hp)
     prune = config.online.prune
     return [

@@ -292,7 +292,7 @@ def _as_version_2(path: Path, meta_clear_scans: int | None) -> None:
     for name in ("leaf_depth", "learn_scans", "clear_scans"):
         online.pop(name, None)
     lattice, exact = stored.pop("lattice"), stored.pop("exact")
-    for name in ("inducing_spacing", "max_inducing_per_axis", "clear_margin"):
+    for name in ("inducing_spacing", "max_inducing_per_axis", "clear_margin", "tile_voxels"):
         lattice.pop(name, None)
     online.update(lattice, **exact, prune_free=0.1192, prune_occupied=0.971)
     online.update(kernel_cache_mb=64.0, max_inducing_per_axis=0)
@@ -409,3 +409,36 @@ def test_a_map_file_from_before_the_lattice_engine_reopens_exact(tmp_path: Path)
 def evidence_bytes(leaf: Leaf) -> tuple[bytes, ...]:
     """Every array of a leaf's engine evidence, as bytes."""
     return tuple(a.tobytes() for a in evidence_arrays(leaf.evidence))
+
+
+def test_a_3d_map_file_of_leaves_of_four_reopens_as_it_was(tmp_path: Path) -> None:
+    """3D lattice files from before tiles (leaves of 4 voxels, no ``tile_voxels``) reopen with
+    their leaves, fitted as one tile each; a version 2 file (no ``leaf_depth``) too."""
+    import json
+
+    from octolgp.sim.lidar3d import simulate_lidar_room
+
+    room = simulate_lidar_room(3, seed=1, n_azimuth=128, n_elevation=8, max_range=8.0, n_heldout=1)
+    scans = [s.downsample(0.2) for s in room.scans()]
+    config = MapConfig(dim=3, resolution=0.2, hyperparameters=HP)
+    old = dataclasses.replace(config, online=dataclasses.replace(config.online, leaf_depth=14))
+    path = tmp_path / "old3d.octolgp"
+    with OnlineMap(old, path=path) as m:
+        m.insert_scans(scans[:2])
+        before = _values(m)
+    con = sqlite3.connect(path)
+    stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
+    del stored["lattice"]["tile_voxels"]
+    con.execute("UPDATE meta SET value = ? WHERE key = 'config'", (json.dumps(stored),))
+    con.commit()
+    con.close()
+    with OnlineMap.open(path) as m:
+        assert m.config.leaf_depth == 14
+        assert m.config.tile_voxels == 4
+        assert _values(m) == before
+        m.insert_scan(scans[2])
+        after = _values(m)
+    _as_version_2(path, meta_clear_scans=5)
+    with OnlineMap.open(path) as m:
+        assert (m.config.leaf_depth, m.config.tile_voxels) == (14, 4)
+        assert _values(m) == after

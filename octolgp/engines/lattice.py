@@ -17,6 +17,7 @@ inserting them at once.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import itertools
 import struct
@@ -437,14 +438,120 @@ def gather_observations(
 
 
 def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
-    """The lattice of a map's leaves: leaf and halo in voxels, lattice points per axis."""
+    """The lattice of a map's GP tiles: tile and halo in voxels, lattice points per axis.
+
+    A tile is ``LatticeConfig.tile_voxels`` on an edge (the leaf itself where tiles are
+    as large), with the leaf grid's halo.
+    """
     grid = LeafGrid.from_config(config)
+    tile = config.tile_voxels
     k_max = config.max_inducing_per_axis
-    box = grid.side + 2 * grid.halo_voxels
+    box = tile + 2 * grid.halo_voxels
     k_min = min(k_max, box // 3)  # at least one lattice point per 3 voxels
     edge = box * grid.resolution
     k = inducing_per_axis(edge, hp.length_scale, config.inducing_spacing, k_min, k_max)
-    return LatticeGeometry(config.dim, grid.side, grid.halo_voxels, k, grid.resolution)
+    return LatticeGeometry(config.dim, tile, grid.halo_voxels, k, grid.resolution)
+
+
+@dataclass(frozen=True)
+class TileLayout:
+    """Where the GP tiles of a leaf sit in its halo box and among its voxels.
+
+    Tiles are numbered x fastest, as are the voxels of a tile's halo box and of a tile
+    (the orders of :class:`octolgp.gp.lattice.LatticeGeometry`).
+
+    Attributes
+    ----------
+    per_axis : int
+        Tiles per axis, ``T = side / tile``.
+    tile, halo : int
+        Voxels along a tile's edge, and the halo on every side.
+    window : ndarray of int64, shape (T**d, (tile + 2 halo)**d)
+        Per tile, its halo box's voxels as flat indices into the leaf's halo box.
+    voxels : ndarray of int64, shape (T**d, tile**d)
+        Per tile, its voxels as flat indices into the leaf's voxels.
+    corner : ndarray of int64, shape (T**d, d)
+        Each tile's lower corner relative to the leaf's, in voxels.
+    """
+
+    per_axis: int
+    tile: int
+    halo: int
+    window: IntArray
+    voxels: IntArray
+    corner: IntArray
+
+
+def _flat_offsets(edge: int, stride: int, dim: int) -> IntArray:
+    """Flat indices, in a box of edge ``stride``, of a cube of ``edge`` at its origin (x fastest)."""
+    steps = np.arange(edge, dtype=np.int64)
+    grids = np.meshgrid(*([steps] * dim), indexing="ij")
+    coords = np.stack([g.ravel(order="F") for g in grids], axis=1)
+    out: IntArray = coords @ (stride ** np.arange(dim, dtype=np.int64))
+    return out
+
+
+@functools.lru_cache(maxsize=8)
+def tile_layout(grid: LeafGrid, tile: int) -> TileLayout:
+    """The tiles of ``tile`` voxels of a leaf of ``grid`` (memoised; read-only arrays)."""
+    side, halo, d = grid.side, grid.halo_voxels, grid.dim
+    per_axis = side // tile
+    box = side + 2 * halo
+    corner = _flat_offsets(per_axis, per_axis, d)  # tile numbers, then their coordinates
+    corner = np.stack([(corner // per_axis**a) % per_axis for a in range(d)], axis=1) * tile
+    window = (corner @ (box ** np.arange(d)))[:, None] + _flat_offsets(tile + 2 * halo, box, d)
+    voxels = (corner @ (side ** np.arange(d)))[:, None] + _flat_offsets(tile, side, d)
+    for a in (window, voxels, corner):
+        a.setflags(write=False)
+    return TileLayout(per_axis, tile, halo, window, voxels, corner)
+
+
+def tile_returns(kept: KeptReturns, layout: TileLayout, tile_lo: FloatArray) -> Returns:
+    """Leaves' returns split into their tiles: each return in every tile whose halo box holds it.
+
+    Parameters
+    ----------
+    kept : KeptReturns
+        The leaves' returns.
+    layout : TileLayout
+    tile_lo : ndarray of shape (L T**d, d)
+        Each tile's lower corner (leaf after leaf, tiles in layout order), world frame,
+        metres: a tile's returns are relative to it, computed as a leaf of the tile's
+        size computes its own.
+
+    Returns
+    -------
+    tiles : Returns
+        Per tile, its returns relative to the tile's lower corner, in the leaf's order.
+    """
+    t, h, T = layout.tile, layout.halo, layout.per_axis
+    points, coords = kept.points, kept.coords
+    if T == 1:  # the leaf is its one tile
+        return points
+    d = points.points.shape[1]
+    n_tiles = points.counts.size * T**d
+    if not points.points.shape[0]:
+        return Returns(points.points, points.weights, np.zeros(n_tiles, dtype=np.int64))
+    owner = np.repeat(np.arange(points.counts.size), points.counts)
+    top = [np.minimum(coords[:, a] // t, T - 1) for a in range(d)]  # the highest tile per axis
+    reach = -(-(t + 2 * h) // t)  # tiles per axis whose halo box may hold a voxel
+    tile_parts, row_parts = [], []
+    for offset in itertools.product(range(reach), repeat=d):  # candidate tiles
+        o = [top[a] - offset[a] for a in range(d)]
+        ok = np.ones(owner.size, dtype=bool)
+        for a in range(d):
+            ok &= (o[a] >= 0) & (coords[:, a] < o[a] * t + t + 2 * h)
+        rows = np.flatnonzero(ok)
+        number = owner[rows] * T**d
+        for a in range(d):
+            number += o[a][rows] * T**a
+        tile_parts.append(number)
+        row_parts.append(rows)
+    number, rows = np.concatenate(tile_parts), np.concatenate(row_parts)
+    order = np.lexsort((rows, number))  # by tile, then the leaf's order
+    number, rows = number[order], rows[order]
+    counts = np.bincount(number, minlength=n_tiles).astype(np.int64)
+    return Returns(kept.absolute[rows] - tile_lo[number], points.weights[rows], counts)
 
 
 @functools.lru_cache(maxsize=8)
@@ -463,7 +570,26 @@ def return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: int) -> Retu
     evidence_cap)``.
     """
     evidence = evidence_of(leaves)
-    return _return_points(leaves, evidence, None, grid, evidence_cap)
+    return _return_points(leaves, evidence, None, grid, evidence_cap).points
+
+
+@dataclass(frozen=True)
+class KeptReturns:
+    """Leaves' kept returns, flat (leaf after leaf), as the tiles need them.
+
+    Attributes
+    ----------
+    points : Returns
+        Relative to each leaf's lower corner, with weights and counts per leaf.
+    coords : ndarray of int64, shape (R, d)
+        Each return's voxel in its leaf's halo box.
+    absolute : ndarray of shape (R, d)
+        The returns, world frame, metres.
+    """
+
+    points: Returns
+    coords: IntArray
+    absolute: FloatArray
 
 
 def _return_points(
@@ -472,8 +598,8 @@ def _return_points(
     hit_counts: NDArray[np.uint8] | None,
     grid: LeafGrid,
     evidence_cap: int,
-) -> Returns:
-    """:func:`return_points` of leaves whose evidence is read already.
+) -> KeptReturns:
+    """:func:`return_points` of leaves whose evidence is read already, and their voxels.
 
     ``hit_counts``: the leaves' return counts, shape (len(leaves), H), or ``None`` to
     read them from ``evidence``.
@@ -481,18 +607,19 @@ def _return_points(
     box, halo, d = grid.side + 2 * grid.halo_voxels, grid.halo_voxels, grid.dim
     n_kept = np.array([ev.hit_keys.size for ev in evidence], dtype=np.int64)
     if not n_kept.sum():
-        return Returns(np.zeros((0, d)), np.zeros(0), n_kept)
+        none = np.zeros((0, d))
+        return KeptReturns(Returns(none, np.zeros(0), n_kept), np.zeros((0, d), np.int64), none)
     index = _stack([leaf.index for leaf in leaves])
     owner = np.repeat(np.arange(len(leaves)), n_kept)
     keys = np.concatenate([ev.hit_keys for ev in evidence])
-    corner = index[owner] * grid.side - halo
-    flat = (unpack_keys(keys, d) - corner) @ (box ** np.arange(d, dtype=np.int64))
+    coords = unpack_keys(keys, d) - (index[owner] * grid.side - halo)
+    flat = coords @ (box ** np.arange(d, dtype=np.int64))
     if hit_counts is None:
         hit_counts = np.stack([ev.counts[0] for ev in evidence])
     weights = np.minimum(hit_counts[owner, flat], evidence_cap).astype(np.float64)
     lo, _ = grid.box(index)
-    pos = np.concatenate([ev.hits for ev in evidence]) - lo[owner]
-    return Returns(pos, weights, n_kept)
+    absolute = np.concatenate([ev.hits for ev in evidence])
+    return KeptReturns(Returns(absolute - lo[owner], weights, n_kept), coords, absolute)
 
 
 def fit_lattice_leaves(
@@ -515,25 +642,50 @@ def fit_lattice_leaves(
     tables = map_tables(config, hp)
     evidence = evidence_of(leaves)
     stored = _stack([ev.counts for ev in evidence])
-    n_halo = tables.phi.shape[0]
+    grid = LeafGrid.from_config(config)
+    n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
     if stored.shape[2] != n_halo:
         raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
-    grid = LeafGrid.from_config(config)
-    points = _return_points(leaves, evidence, stored[:, 0], grid, lc.evidence_cap)
+    kept = _return_points(leaves, evidence, stored[:, 0], grid, lc.evidence_cap)
+    layout = tile_layout(grid, config.tile_voxels)
+    n_tiles = layout.window.shape[0]
+    returns = kept.points
+    if n_tiles > 1:
+        tiles = dataclasses.replace(
+            grid, leaf_depth=grid.leaf_depth + int(np.log2(layout.per_axis))
+        )
+        index = _stack([leaf.index for leaf in leaves])
+        tile_index = (index * layout.per_axis)[:, None, :] + layout.corner // layout.tile
+        tile_lo, _ = tiles.box(tile_index.reshape(-1, grid.dim))
+        returns = tile_returns(kept, layout, tile_lo)
     runs = 1 if pool is None else min(len(leaves), config.n_jobs)
     bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    parts = [(stored[lo:hi], points.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)]
+    parts = [
+        (stored[lo:hi], returns.leaves(lo * n_tiles, hi * n_tiles))
+        for lo, hi in itertools.pairwise(bounds)
+    ]
 
     def run(part: tuple[NDArray[np.uint8], Returns]) -> tuple[np.ndarray, ...]:
-        """Counts → latent posterior (stored as float32) → P(occupied) (on a pool thread).
+        """Counts → the tiles' latent posteriors → the leaves' voxels → P, on a pool thread.
 
-        P stays float64 here: pruning decides on it before it is stored as float32.
+        Mean and variance are stored as float32; P stays float64 here: pruning decides on it before it is stored as float32.
         """
-        counts, returns = part
+        counts, tile_points = part
+        n = counts.shape[0]
         hits, frees = effective_counts(
             counts[:, 0], counts[:, 1], lc.evidence_cap, config.clear_scans
         )
-        mean, var = lattice_posterior(tables, hits, frees, lc.free_weight, returns)
+        if n_tiles > 1:  # each tile's halo box, tile after tile
+            hits = hits[:, layout.window].reshape(n * n_tiles, -1)
+            frees = frees[:, layout.window].reshape(n * n_tiles, -1)
+        tile_mean, tile_var = lattice_posterior(tables, hits, frees, lc.free_weight, tile_points)
+        if n_tiles > 1:  # the tiles' voxels into their leaves'
+            mean = np.empty((n, grid.voxels_per_leaf))
+            var = np.empty((n, grid.voxels_per_leaf))
+            mean[:, layout.voxels.ravel()] = tile_mean.reshape(n, -1)
+            var[:, layout.voxels.ravel()] = tile_var.reshape(n, -1)
+        else:
+            mean, var = tile_mean, tile_var
         prob = latent_occupancy(mean, var, hp)
         return mean.astype(np.float32), var.astype(np.float32), prob
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,11 +59,18 @@ class LeafGrid:
 
     @classmethod
     def from_config(cls, config: MapConfig) -> LeafGrid:
-        """The grid of a map config (``config.online``)."""
+        """The grid of a map config (``config.online``).
+
+        A lattice leaf fitted in tiles smaller than itself keeps the tiles' halo: the
+        ``online.halo`` of a tile's edge, in whole voxels (``LatticeConfig.tile_voxels``).
+        """
         oc = config.online
-        return cls(
-            config.dim, float(config.resolution), config.tree_depth, config.leaf_depth, oc.halo
-        )
+        halo = oc.halo
+        side = 1 << (config.tree_depth - config.leaf_depth)
+        tile = config.tile_voxels
+        if oc.engine == "lattice" and tile < side:
+            halo = math.ceil(oc.halo * tile - 1e-9) / side
+        return cls(config.dim, float(config.resolution), config.tree_depth, config.leaf_depth, halo)
 
     @property
     def shift(self) -> int:

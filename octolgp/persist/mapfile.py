@@ -178,8 +178,9 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     Files of version 3 and later store the resolved config whole. Older ones dropped
     derived fields: their engine is ``"exact"`` when absent (files from before the
     lattice engine) and their ``clear_scans`` the ``clear_scans`` meta row (0 where
-    absent, files from before forgetting); the other derived fields take the defaults
-    they had when those files were written, which are today's.
+    absent, files from before forgetting), a 3D lattice map's ``leaf_depth`` that of
+    leaves of 4 voxels a side; the other derived fields take the defaults they had when
+    those files were written, which are today's.
 
     Raises
     ------
@@ -190,6 +191,9 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         raise OctolgpError(f"config is not a JSON object of MapConfig fields: {stored!r:.60}")
     online = stored.setdefault("online", {})
     online.setdefault("engine", "exact")
+    if "leaf_depth" not in online and online["engine"] == "lattice" and stored.get("dim", 3) == 3:
+        # 3D lattice leaves had 4 voxels a side before leaves held 8 in tiles of 4
+        online["leaf_depth"] = int(stored.get("tree_depth", 16)) - 2
     if "clear_scans" not in online:
         written = int(clear_scans or "0")
         if MapConfig.from_dict(stored).clear_scans != written:

@@ -1,0 +1,147 @@
+"""Lattice leaves fitted in tiles: the map of tile-sized leaves, with fewer leaves to keep.
+
+A 3D lattice leaf of 8 voxels a side is fitted as 8 tiles of 4, each a local GP on its
+own halo box with its own inducing lattice. Each tile sees exactly what a leaf of 4
+voxels would see (the same counts in the same halo box, the same kept returns), so the
+maps' values must be the same; only pruning, which collapses a whole leaf, differs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import numpy as np
+import pytest
+
+from octolgp import Hyperparameters, MapConfig, OnlineMap
+from octolgp.engines.lattice import KeptReturns, Returns, tile_layout, tile_returns
+from octolgp.errors import OctolgpError
+from octolgp.mapping.grid import LeafGrid
+from octolgp.sim.lidar3d import simulate_lidar_room
+
+HP = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+
+
+def _config(leaf_voxels: int | None, prune: bool, clear_scans: int | None = None) -> MapConfig:
+    config = MapConfig(dim=3, resolution=0.2)
+    leaf_depth = None if leaf_voxels is None else config.tree_depth - int(np.log2(leaf_voxels))
+    online = dataclasses.replace(
+        config.online, n_jobs=1, prune=prune, leaf_depth=leaf_depth, clear_scans=clear_scans
+    )
+    return dataclasses.replace(config, hyperparameters=HP, online=online)
+
+
+def _room(n: int) -> list:
+    room = simulate_lidar_room(
+        n, seed=3, n_azimuth=256, n_elevation=16, max_range=12.0, range_noise=0.02, n_heldout=1
+    )
+    return [s.downsample(0.2) for s in room.scans()]
+
+
+def test_the_default_3d_leaf_holds_eight_tiles() -> None:
+    config = _config(None, True).resolve()
+    grid = LeafGrid.from_config(config)
+    assert (grid.side, config.tile_voxels, grid.halo_voxels) == (8, 4, 1)
+    assert MapConfig(dim=2, resolution=0.1).resolve().tile_voxels == 16  # 2D: the leaf
+
+
+@pytest.mark.parametrize("clear_scans", [None, 0])
+def test_tiled_leaves_give_the_map_of_tile_sized_leaves(clear_scans: int | None) -> None:
+    scans = _room(6)
+    tiled = OnlineMap(_config(None, False, clear_scans))
+    small = OnlineMap(_config(4, False, clear_scans))
+    for scan in scans:  # one by one: leaves change and are refitted scan after scan
+        tiled.insert_scan(scan)
+        small.insert_scan(scan)
+    assert len(tiled.store) * 4 < len(small.store)
+    centres, _ = small.voxels()
+    for read in ("occupancy", "latent"):
+        a = getattr(tiled, read)(centres, interpolate=False)
+        b = getattr(small, read)(centres, interpolate=False)
+        # the same float64 system per tile, computed in the same kernel: equal values
+        np.testing.assert_array_equal(a, b)
+    tiled.close()
+    small.close()
+
+
+def test_with_pruning_only_the_pruned_voxels_differ() -> None:
+    scans = _room(4)
+    tiled = OnlineMap(_config(None, True))
+    small = OnlineMap(_config(4, True))
+    tiled.insert_scans(scans)
+    small.insert_scans(scans)
+    centres, _ = small.voxels()
+    a = tiled.occupancy(centres, interpolate=False)
+    b = small.occupancy(centres, interpolate=False)
+    # a pruned leaf reads its least confident value: confident on both sides of the bounds
+    differ = a != b
+    assert ((a[differ] < 0.5) == (b[differ] < 0.5)).all()
+    assert (np.minimum(a, b)[differ] < 0.5).sum() + (np.maximum(a, b)[differ] > 0.5).sum() > 0
+    tiled.close()
+    small.close()
+
+
+@pytest.mark.parametrize(
+    ("dim", "side", "tile", "halo"), [(3, 8, 4, 1), (2, 16, 4, 2), (3, 8, 2, 1)]
+)
+def test_tile_windows_are_the_tiles_halo_boxes(dim: int, side: int, tile: int, halo: int) -> None:
+    grid = LeafGrid(dim, 0.2, 16, 16 - int(np.log2(side)), halo / side)
+    layout = tile_layout(grid, tile)
+    box = side + 2 * halo
+    rng = np.random.default_rng(dim)
+    values = rng.integers(0, 1000, (box,) * dim)  # indexed [z, y, x]: flat = x fastest
+    voxels = rng.integers(0, 1000, (side,) * dim)
+    for q, o in enumerate(itertools.product(range(side // tile), repeat=dim)):
+        o = o[::-1]  # tile numbers: x fastest
+        lo = [o[a] * tile for a in range(dim)]
+        window = tuple(slice(lo[a], lo[a] + tile + 2 * halo) for a in reversed(range(dim)))
+        inner = tuple(slice(lo[a], lo[a] + tile) for a in reversed(range(dim)))
+        np.testing.assert_array_equal(values.ravel()[layout.window[q]], values[window].ravel())
+        np.testing.assert_array_equal(voxels.ravel()[layout.voxels[q]], voxels[inner].ravel())
+        np.testing.assert_array_equal(layout.corner[q], lo)
+
+
+def test_tile_returns_match_a_tile_by_tile_split() -> None:
+    dim, side, tile, halo, res = 3, 8, 4, 1, 0.2
+    grid = LeafGrid(dim, res, 16, 13, halo / side)
+    layout = tile_layout(grid, tile)
+    box = side + 2 * halo
+    rng = np.random.default_rng(5)
+    per_leaf = np.array([0, 7, 1, 30])
+    coords = rng.integers(0, box, (per_leaf.sum(), dim))
+    pos = (coords - halo + rng.random(coords.shape)) * res
+    weights = rng.integers(1, 4, per_leaf.sum()).astype(float)
+    kept = KeptReturns(Returns(pos, weights, per_leaf), coords, pos + 10.0)  # leaves at 10 m
+    tile_lo = np.tile(10.0 + layout.corner * res, (per_leaf.size, 1))
+    out = tile_returns(kept, layout, tile_lo)
+    starts = np.r_[0, np.cumsum(per_leaf)]
+    rows_out = np.r_[0, np.cumsum(out.counts)]
+    n_tiles = layout.window.shape[0]
+    for j in range(per_leaf.size):
+        for q in range(n_tiles):
+            lo = layout.corner[q]
+            mine = [
+                r
+                for r in range(starts[j], starts[j + 1])
+                if ((coords[r] >= lo) & (coords[r] < lo + tile + 2 * halo)).all()
+            ]
+            k = j * n_tiles + q
+            got = slice(rows_out[k], rows_out[k + 1])
+            np.testing.assert_array_equal(out.points[got], (pos[mine] + 10.0) - (10.0 + lo * res))
+            np.testing.assert_array_equal(out.weights[got], weights[mine])
+
+
+@pytest.mark.parametrize(
+    ("tile", "leaf_depth", "match"),
+    [
+        (3, None, "tile_voxels must be a power of two"),
+        (16, None, "at most the leaf's edge"),
+        (0, None, "tile_voxels"),
+    ],
+)
+def test_bad_tile_sizes_name_the_field(tile: int, leaf_depth: int | None, match: str) -> None:
+    from octolgp.config import LatticeConfig
+
+    with pytest.raises(OctolgpError, match=match):
+        MapConfig(dim=3, resolution=0.2, lattice=LatticeConfig(tile_voxels=tile))
