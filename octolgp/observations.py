@@ -848,5 +848,5 @@ def effective_counts(
     h = np.minimum(hits, evidence_cap)
     f = np.minimum(frees, max(evidence_cap, clear_scans))
     if clear_scans:
-        f = np.where(h > 0, 0, f).astype(f.dtype)
+        f *= h == 0  # f is a fresh array
     return h, f

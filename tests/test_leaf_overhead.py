@@ -118,10 +118,15 @@ def reference_return_points(leaves: list[Leaf], grid: LeafGrid, evidence_cap: in
 
 
 def reference_fit(
-    leaves: list[Leaf], config: MapConfig, hp: Hyperparameters, pool: object = None
+    leaves: list[Leaf],
+    config: MapConfig,
+    hp: Hyperparameters,
+    pool: object = None,
+    fresh: object = None,
 ) -> list[LeafFit]:
     """The lattice fit on one thread, tile by tile, its inputs read and its leaves made one
-    by one: each tile's halo box sliced out of its leaf's, its returns picked one by one."""
+    by one: each tile's halo box sliced out of its leaf's, its returns picked one by one.
+    Every tile is refitted (``fresh`` is ignored): keeping fresh tiles must not matter."""
     if not leaves:
         return []
     lc = config.lattice

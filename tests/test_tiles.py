@@ -47,13 +47,29 @@ def test_the_default_3d_leaf_holds_eight_tiles() -> None:
 
 
 @pytest.mark.parametrize("clear_scans", [None, 0])
-def test_tiled_leaves_give_the_map_of_tile_sized_leaves(clear_scans: int | None) -> None:
+def test_tiled_leaves_give_the_map_of_tile_sized_leaves(
+    clear_scans: int | None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Scan after scan, a changed leaf refits only the tiles whose halo boxes changed and
+    keeps the others' values: the map stays that of tile-sized leaves refitted whole."""
+    import octolgp.engines.lattice as lattice_module
+
+    kept_tiles: list[int] = []
+    fit = lattice_module.fit_lattice_leaves
+
+    def spy(*args: object) -> object:
+        fresh = args[4] if len(args) > 4 else None
+        kept_tiles.append(0 if fresh is None else int(np.sum(fresh)))
+        return fit(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(lattice_module, "fit_lattice_leaves", spy)
     scans = _room(6)
     tiled = OnlineMap(_config(None, False, clear_scans))
     small = OnlineMap(_config(4, False, clear_scans))
     for scan in scans:  # one by one: leaves change and are refitted scan after scan
         tiled.insert_scan(scan)
         small.insert_scan(scan)
+    assert sum(kept_tiles) > 0  # some tiles kept their values
     assert len(tiled.store) * 4 < len(small.store)
     centres, _ = small.voxels()
     for read in ("occupancy", "latent"):

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
@@ -53,12 +54,17 @@ class Evidence:
     kept : list of (int, Leaf)
         Leaves whose evidence moved without changing what their GP sees; stored as
         they are, not refitted.
+    fresh : ndarray of bool, shape (len(changed), tiles per leaf), or None
+        Per changed leaf, the parts of its GP (an engine's tiles) whose stored values
+        are those of its new evidence already, which :meth:`LeafEngine.fit` may keep;
+        ``None``: none.
     """
 
     changed: list[tuple[int, Leaf]]
     touched: list[int]
     new_items: int
     kept: list[tuple[int, Leaf]] = field(default_factory=list)
+    fresh: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -103,11 +109,13 @@ class LeafEngine(Protocol):
         pool: Executor | None = None,
         *,
         reuse: bool = True,
+        fresh: NDArray[np.bool_] | None = None,
     ) -> list[LeafFit]:
         """Fit leaves on their evidence and predict their voxels (one per leaf, in order).
 
         ``pool``: threads to fit on (BLAS limits are the caller's). ``reuse``: whether
         the engine may keep and reuse work of earlier fits (never a different result).
+        ``fresh``: :attr:`Evidence.fresh` of these leaves, parts whose values may be kept.
         """
         ...
 

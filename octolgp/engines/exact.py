@@ -27,6 +27,7 @@ from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import NDArray
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.engines.base import Evidence, LeafFit, Lookup, read_arrays, stage, with_values
@@ -309,8 +310,12 @@ class ExactEngine:
         pool: Executor | None = None,
         *,
         reuse: bool = True,
+        fresh: NDArray[np.bool_] | None = None,
     ) -> list[LeafFit]:
-        """Fit each leaf on its own (:func:`fit_leaf`), on ``pool``'s threads when given."""
+        """Fit each leaf on its own (:func:`fit_leaf`), on ``pool``'s threads when given.
+
+        A leaf is one GP here: ``fresh`` (never given by this engine's evidence) is unused.
+        """
         cache = self.kernel_cache if reuse else None
         if pool is None or len(leaves) < 2:
             return [fit_leaf(leaf, self.config, hp, cache) for leaf in leaves]

@@ -418,8 +418,11 @@ def gather_observations(
         pack_keys(obs.keys),
         grid.dim,
     )
+    stale = _stale_tiles(inverse[effective_p], flat[effective_p], touched.size, grid, config)
     changed: list[tuple[int, Leaf]] = []
     kept: list[tuple[int, Leaf]] = []
+    fresh: list[NDArray[np.bool_]] = []
+    full = grid.voxels_per_leaf
     touched_index = unpack_keys(touched, grid.dim)
     sel = np.flatnonzero(new_counts)
     for j, row, r in zip(sel.tolist(), counts[sel], refit[sel].tolist(), strict=True):
@@ -432,9 +435,45 @@ def gather_observations(
             ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_counts
             hit_keys, hits = (ev.hit_keys, ev.hits) if moved is None else moved
             leaf = leaf.with_evidence(LatticeEvidence(row.copy(), hit_keys, hits))
-        (changed if r else kept).append((keys[j], leaf))
+        if r:
+            changed.append((keys[j], leaf))
+            if stale is not None:  # tiles keep their values only where the leaf holds all
+                fresh.append(~stale[j] if leaf.mean.size == full else stale[j] & False)
+        else:
+            kept.append((keys[j], leaf))
     gained = int(copies[d_h].sum() + copies[d_f].sum())
-    return Evidence(changed, keys, gained, kept)
+    tiles_fresh = None if stale is None or not changed else np.stack(fresh)
+    return Evidence(changed, keys, gained, kept, tiles_fresh)
+
+
+def _stale_tiles(
+    leaf: IntArray, flat: IntArray, n_leaves: int, grid: LeafGrid, config: MapConfig
+) -> NDArray[np.bool_] | None:
+    """Per leaf, the tiles whose halo boxes hold a voxel whose GP input changed.
+
+    Parameters
+    ----------
+    leaf, flat : ndarray of int64, shape (p,)
+        The changed (voxel, leaf) copies: the leaf and the voxel's flat index in its
+        halo box.
+    n_leaves : int
+    grid : LeafGrid
+    config : MapConfig
+
+    Returns
+    -------
+    ndarray of bool, shape (n_leaves, tiles per leaf), or None
+        ``None`` where a leaf is one tile.
+    """
+    layout = tile_layout(grid, config.tile_voxels)
+    n_tiles = layout.window.shape[0]
+    if n_tiles == 1:
+        return None
+    n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
+    changed = np.zeros((n_leaves, n_halo), dtype=bool)
+    changed[leaf, flat] = True
+    out: NDArray[np.bool_] = np.any(changed[:, layout.window], axis=2)
+    return out
 
 
 def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
@@ -506,7 +545,45 @@ def tile_layout(grid: LeafGrid, tile: int) -> TileLayout:
     return TileLayout(per_axis, tile, halo, window, voxels, corner)
 
 
-def tile_returns(kept: KeptReturns, layout: TileLayout, tile_lo: FloatArray) -> Returns:
+def tiles_holding(coords: IntArray, layout: TileLayout) -> tuple[IntArray, IntArray]:
+    """Every (voxel, tile) pair where the tile's halo box holds the voxel.
+
+    Parameters
+    ----------
+    coords : ndarray of int64, shape (n, d)
+        Voxels in a leaf's halo box.
+    layout : TileLayout
+
+    Returns
+    -------
+    row, tile : ndarray of int64, shape (p,)
+        The voxel (row of ``coords``) and the tile's number of each pair.
+    """
+    t, h, T = layout.tile, layout.halo, layout.per_axis
+    d = coords.shape[1]
+    top = [np.minimum(coords[:, a] // t, T - 1) for a in range(d)]  # the highest tile per axis
+    reach = -(-(t + 2 * h) // t)  # tiles per axis whose halo box may hold a voxel
+    tile_parts, row_parts = [], []
+    for offset in itertools.product(range(reach), repeat=d):  # candidate tiles
+        o = [top[a] - offset[a] for a in range(d)]
+        ok = np.ones(coords.shape[0], dtype=bool)
+        for a in range(d):
+            ok &= (o[a] >= 0) & (coords[:, a] < o[a] * t + t + 2 * h)
+        rows = np.flatnonzero(ok)
+        number = np.zeros(rows.size, dtype=np.int64)
+        for a in range(d):
+            number += o[a][rows] * T**a
+        tile_parts.append(number)
+        row_parts.append(rows)
+    return np.concatenate(row_parts), np.concatenate(tile_parts)
+
+
+def tile_returns(
+    kept: KeptReturns,
+    layout: TileLayout,
+    tile_lo: FloatArray,
+    fitted: NDArray[np.bool_] | None = None,
+) -> Returns:
     """Leaves' returns split into their tiles: each return in every tile whose halo box holds it.
 
     Parameters
@@ -518,40 +595,37 @@ def tile_returns(kept: KeptReturns, layout: TileLayout, tile_lo: FloatArray) -> 
         Each tile's lower corner (leaf after leaf, tiles in layout order), world frame,
         metres: a tile's returns are relative to it, computed as a leaf of the tile's
         size computes its own.
+    fitted : ndarray of bool, shape (L T**d,), optional
+        The tiles to keep (default: all); the others are left out.
 
     Returns
     -------
     tiles : Returns
-        Per tile, its returns relative to the tile's lower corner, in the leaf's order.
+        Per tile kept, its returns relative to the tile's lower corner, in the leaf's
+        order.
     """
-    t, h, T = layout.tile, layout.halo, layout.per_axis
-    points, coords = kept.points, kept.coords
-    if T == 1:  # the leaf is its one tile
+    T = layout.per_axis
+    points = kept.points
+    if T == 1 and fitted is None:  # the leaf is its one tile
         return points
     d = points.points.shape[1]
     n_tiles = points.counts.size * T**d
+    n_out = n_tiles if fitted is None else int(fitted.sum())
     if not points.points.shape[0]:
-        return Returns(points.points, points.weights, np.zeros(n_tiles, dtype=np.int64))
+        return Returns(points.points, points.weights, np.zeros(n_out, dtype=np.int64))
     owner = np.repeat(np.arange(points.counts.size), points.counts)
-    top = [np.minimum(coords[:, a] // t, T - 1) for a in range(d)]  # the highest tile per axis
-    reach = -(-(t + 2 * h) // t)  # tiles per axis whose halo box may hold a voxel
-    tile_parts, row_parts = [], []
-    for offset in itertools.product(range(reach), repeat=d):  # candidate tiles
-        o = [top[a] - offset[a] for a in range(d)]
-        ok = np.ones(owner.size, dtype=bool)
-        for a in range(d):
-            ok &= (o[a] >= 0) & (coords[:, a] < o[a] * t + t + 2 * h)
-        rows = np.flatnonzero(ok)
-        number = owner[rows] * T**d
-        for a in range(d):
-            number += o[a][rows] * T**a
-        tile_parts.append(number)
-        row_parts.append(rows)
-    number, rows = np.concatenate(tile_parts), np.concatenate(row_parts)
+    rows, number = tiles_holding(kept.coords, layout)
+    number += owner[rows] * T**d
+    if fitted is not None:  # only the tiles fitted, numbered among themselves
+        keep = fitted[number]
+        rows, number = rows[keep], number[keep]
+        rank = np.cumsum(fitted) - 1
+        lo, number = tile_lo[number], rank[number]
+    else:
+        lo = tile_lo[number]
     order = np.lexsort((rows, number))  # by tile, then the leaf's order
-    number, rows = number[order], rows[order]
-    counts = np.bincount(number, minlength=n_tiles).astype(np.int64)
-    return Returns(kept.absolute[rows] - tile_lo[number], points.weights[rows], counts)
+    counts = np.bincount(number, minlength=n_out).astype(np.int64)
+    return Returns(kept.absolute[rows[order]] - lo[order], points.weights[rows[order]], counts)
 
 
 @functools.lru_cache(maxsize=8)
@@ -623,13 +697,28 @@ def _return_points(
 
 
 def fit_lattice_leaves(
-    leaves: list[Leaf], config: MapConfig, hp: Hyperparameters, pool: Executor | None = None
+    leaves: list[Leaf],
+    config: MapConfig,
+    hp: Hyperparameters,
+    pool: Executor | None = None,
+    fresh: NDArray[np.bool_] | None = None,
 ) -> list[LeafFit]:
     """Fit leaves on their observation counts, all at once (pure).
 
-    Each leaf's latent posterior at its voxel centres comes from
-    :func:`octolgp.gp.lattice.lattice_posterior`, then PLSC and pruning. With ``pool``
-    the leaves are split into ``config.n_jobs`` runs.
+    Each tile's latent posterior at its voxel centres comes from
+    :func:`octolgp.gp.lattice.lattice_posterior`, then PLSC (stored as float32) and
+    pruning, decided on the stored P. With ``pool`` the tiles are split into
+    ``config.n_jobs`` runs.
+
+    Parameters
+    ----------
+    leaves : list of Leaf
+    config : MapConfig
+    hp : Hyperparameters
+    pool : Executor, optional
+    fresh : ndarray of bool, shape (len(leaves), tiles per leaf), optional
+        Tiles whose stored values are those of the leaf's evidence already (their halo
+        boxes saw no change): they keep them and are not refitted. Default: none.
 
     Returns
     -------
@@ -648,49 +737,51 @@ def fit_lattice_leaves(
         raise ValueError(f"lattice leaves hold {stored.shape[2]} voxels, expected {n_halo}")
     kept = _return_points(leaves, evidence, stored[:, 0], grid, lc.evidence_cap)
     layout = tile_layout(grid, config.tile_voxels)
-    n_tiles = layout.window.shape[0]
+    n, n_tiles = len(leaves), layout.window.shape[0]
+    todo = None if fresh is None or not fresh.any() else ~fresh.reshape(-1)
+    which = np.arange(n * n_tiles) if todo is None else np.flatnonzero(todo)
+    leaf_of, tile_of = which // n_tiles, which % n_tiles  # the tiles to fit
     returns = kept.points
-    if n_tiles > 1:
+    if n_tiles > 1 or todo is not None:
         tiles = dataclasses.replace(
             grid, leaf_depth=grid.leaf_depth + int(np.log2(layout.per_axis))
         )
         index = _stack([leaf.index for leaf in leaves])
         tile_index = (index * layout.per_axis)[:, None, :] + layout.corner // layout.tile
         tile_lo, _ = tiles.box(tile_index.reshape(-1, grid.dim))
-        returns = tile_returns(kept, layout, tile_lo)
-    runs = 1 if pool is None else min(len(leaves), config.n_jobs)
-    bounds = np.linspace(0, len(leaves), runs + 1).round().astype(int)
-    parts = [
-        (stored[lo:hi], returns.leaves(lo * n_tiles, hi * n_tiles))
-        for lo, hi in itertools.pairwise(bounds)
-    ]
+        returns = tile_returns(kept, layout, tile_lo, todo)
+    runs = 1 if pool is None else max(1, min(which.size, config.n_jobs))
+    bounds = np.linspace(0, which.size, runs + 1).round().astype(int)
+    parts = [(lo, hi, returns.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)]
+    flat_stored = stored.reshape(-1)
 
-    def run(part: tuple[NDArray[np.uint8], Returns]) -> tuple[np.ndarray, ...]:
-        """Counts → the tiles' latent posteriors → the leaves' voxels → P, on a pool thread.
-
-        Mean and variance are stored as float32; P stays float64 here: pruning decides on it before it is stored as float32.
-        """
-        counts, tile_points = part
-        n = counts.shape[0]
+    def run(part: tuple[int, int, Returns]) -> tuple[np.ndarray, ...]:
+        """Counts → the tiles' latent posteriors and P, as stored (float32), on a pool thread."""
+        lo, hi, tile_points = part
+        at = leaf_of[lo:hi, None] * (2 * n_halo) + layout.window[tile_of[lo:hi]]
         hits, frees = effective_counts(
-            counts[:, 0], counts[:, 1], lc.evidence_cap, config.clear_scans
+            np.take(flat_stored, at),
+            np.take(flat_stored, at + n_halo),
+            lc.evidence_cap,
+            config.clear_scans,
         )
-        if n_tiles > 1:  # each tile's halo box, tile after tile
-            hits = hits[:, layout.window].reshape(n * n_tiles, -1)
-            frees = frees[:, layout.window].reshape(n * n_tiles, -1)
-        tile_mean, tile_var = lattice_posterior(tables, hits, frees, lc.free_weight, tile_points)
-        if n_tiles > 1:  # the tiles' voxels into their leaves'
-            mean = np.empty((n, grid.voxels_per_leaf))
-            var = np.empty((n, grid.voxels_per_leaf))
-            mean[:, layout.voxels.ravel()] = tile_mean.reshape(n, -1)
-            var[:, layout.voxels.ravel()] = tile_var.reshape(n, -1)
-        else:
-            mean, var = tile_mean, tile_var
+        mean, var = lattice_posterior(tables, hits, frees, lc.free_weight, tile_points)
         prob = latent_occupancy(mean, var, hp)
-        return mean.astype(np.float32), var.astype(np.float32), prob
+        return mean.astype(np.float32), var.astype(np.float32), prob.astype(np.float32)
 
     results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
-    mean, var, prob = (np.concatenate([r[i] for r in results]) for i in range(3))
+    tile_values = [np.concatenate([r[i] for r in results]) for i in range(3)]
+    if n_tiles == 1 and todo is None:
+        mean, var, prob = tile_values
+    else:  # the tiles' voxels into their leaves', over the values kept
+        mean, var, prob = (np.empty((n, grid.voxels_per_leaf), np.float32) for _ in range(3))
+        if fresh is not None and todo is not None:
+            partial = np.flatnonzero(fresh.any(axis=1))
+            for out, name in ((mean, "mean"), (var, "var"), (prob, "prob")):
+                out[partial] = _stack([getattr(leaves[j], name) for j in partial.tolist()])
+        voxels = layout.voxels[tile_of]
+        for out, values in zip((mean, var, prob), tile_values, strict=True):
+            out[leaf_of[:, None], voxels] = values
     fitted = fitted_leaves(leaves, mean, var, prob, config.online.prune)
     return [LeafFit(leaf, 0) for leaf in fitted]
 
@@ -724,9 +815,10 @@ class LatticeEngine:
         pool: Executor | None = None,
         *,
         reuse: bool = True,
+        fresh: NDArray[np.bool_] | None = None,
     ) -> list[LeafFit]:
-        """Fit all the leaves together (:func:`fit_lattice_leaves`); nothing to reuse."""
-        return fit_lattice_leaves(leaves, self.config, hp, pool)
+        """Fit all the leaves together (:func:`fit_lattice_leaves`), but their fresh tiles."""
+        return fit_lattice_leaves(leaves, self.config, hp, pool, fresh)
 
     def rebuilt(self, keys: Iterable[int]) -> None:
         """Nothing is cached per leaf."""

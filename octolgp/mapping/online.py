@@ -38,7 +38,8 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, TypeVar
 
-from numpy.typing import ArrayLike
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.engines import LeafFit, engine_for
@@ -459,7 +460,7 @@ class OnlineMap(MapReads):
         with self._workers.one_blas_thread():
             evidence = self.engine.evidence(scans, self.store.get, stages)
         # 2. leaves → local GP → PLSC, on the map's threads
-        fits = self._fit([leaf for _, leaf in evidence.changed], stages)
+        fits = self._fit([leaf for _, leaf in evidence.changed], stages, fresh=evidence.fresh)
         fitted = [(k, f.leaf) for (k, _), f in zip(evidence.changed, fits, strict=True)]
         # 3. the one write: store, file, then the sink
         t = time.perf_counter()
@@ -797,14 +798,23 @@ class OnlineMap(MapReads):
             raise
 
     def _fit(
-        self, leaves: list[Leaf], stages: dict[str, float] | None = None, *, reuse: bool = True
+        self,
+        leaves: list[Leaf],
+        stages: dict[str, float] | None = None,
+        *,
+        reuse: bool = True,
+        fresh: NDArray[np.bool_] | None = None,
     ) -> list[LeafFit]:
-        """Fit leaves with the map's hyperparameters on its threads (``stages["fit"]``)."""
+        """Fit leaves with the map's hyperparameters on its threads (``stages["fit"]``).
+
+        ``fresh``: the step's :attr:`~octolgp.engines.base.Evidence.fresh` tiles.
+        """
         hp = self.hyperparameters
         assert hp is not None
         t = time.perf_counter()
+        pool = self._workers.pool(len(leaves))
         with self._workers.one_blas_thread():
-            fits = self.engine.fit(leaves, hp, self._workers.pool(len(leaves)), reuse=reuse)
+            fits = self.engine.fit(leaves, hp, pool, reuse=reuse, fresh=fresh)
         if stages is not None:
             stages["fit"] = stages.get("fit", 0.0) + time.perf_counter() - t
         return fits
