@@ -172,7 +172,7 @@ def reference_fit(
         var[inner] = tile_var[j * len(tiles) + q].reshape((t,) * d)
     mean, var = mean.reshape(len(leaves), -1), var.reshape(len(leaves), -1)
     prob = latent_occupancy(mean, var, hp)
-    prune = config.online.prune
+    prune = config.prune
     return [
         LeafFit(with_values(leaf, mean[j], var[j], prob[j], prune), 0)
         for j, leaf in enumerate(leaves)
@@ -249,9 +249,9 @@ def _scans(n: int) -> list[Scan]:
     return [s.downsample(0.2) for s in room.scans()]
 
 
-def _config(clear_scans: int | None, budget: float | None) -> MapConfig:
+def _config(clear_scans: int | None, budget: float | None, prune: bool | None = None) -> MapConfig:
     config = MapConfig(dim=3, resolution=0.2, memory_budget_mb=budget)
-    online = dataclasses.replace(config.online, n_jobs=1, clear_scans=clear_scans)
+    online = dataclasses.replace(config.online, n_jobs=1, clear_scans=clear_scans, prune=prune)
     return dataclasses.replace(config, hyperparameters=HP, online=online)
 
 
@@ -288,12 +288,17 @@ def _evidence_state(evidence: Evidence) -> tuple[object, ...]:
     )
 
 
-@pytest.mark.parametrize(("clear_scans", "budget"), [(None, None), (0, None), (2, 0.05)])
+@pytest.mark.parametrize(
+    ("clear_scans", "budget", "prune"), [(None, None, None), (0, None, True), (2, 0.05, True)]
+)
 def test_maps_equal_those_of_the_straightforward_path(
-    monkeypatch: pytest.MonkeyPatch, clear_scans: int | None, budget: float | None
+    monkeypatch: pytest.MonkeyPatch,
+    clear_scans: int | None,
+    budget: float | None,
+    prune: bool | None,
 ) -> None:
     scans = _scans(6)
-    config = _config(clear_scans, budget)
+    config = _config(clear_scans, budget, prune)
     fast = OnlineMap(config)
     with monkeypatch.context() as m:
         m.setattr(lattice_module, "gather_observations", reference_gather)

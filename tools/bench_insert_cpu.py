@@ -1,55 +1,90 @@
-"""CPU seconds of a 3D ``insert_scan`` on one thread, by stage: an A/B probe for engine changes.
+"""CPU seconds of a 3D ``insert_scan``, by stage: an A/B probe for engine changes.
 
-The simulated room of ``tools/bench_3d.py`` (32 x 1024 lidar, 12 scans through
-``Scan.downsample(0.2)``), ``MapConfig(dim=3, resolution=0.2)`` with given
-hyperparameters (length scale 0.8 m) and ``online.n_jobs=1``; each insert is timed by
-``time.thread_time`` (CPU seconds of the calling thread, less sensitive to other
-processes than wall clock). Compare two checkouts in one shell, alternating::
+Scenes (the same as ``tools/bench_3d.py``'s, hyperparameters given, length scale 0.8 m):
 
-    PYTHONPATH=/path/to/a .venv/bin/python tools/bench_insert_cpu.py
-    PYTHONPATH=/path/to/b .venv/bin/python tools/bench_insert_cpu.py
+- ``room``: the simulated room (32 x 1024 lidar, 12 scans through ``Scan.downsample(0.2)``);
+- ``street64``: the simulated street, a 64 x 1024 lidar (-24.9°..2°) to 80 m, 7 scans 1 m
+  apart from 100 m along the route, through ``Scan.downsample(0.2)``.
+
+``MapConfig(dim=3, resolution=0.2)`` with ``online.n_jobs`` = ``--threads`` (default 1);
+each insert is timed by ``time.thread_time`` (CPU seconds of the calling thread, less
+sensitive to other processes than wall clock; with ``--threads 2`` the fitting threads'
+CPU is not in it, so read the wall column) and by wall clock. Compare two checkouts in
+one shell, alternating::
+
+    PYTHONPATH=/path/to/a .venv/bin/python tools/bench_insert_cpu.py --scene street64
+    PYTHONPATH=/path/to/b .venv/bin/python tools/bench_insert_cpu.py --scene street64
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import time
 
 import numpy as np
 
 import octolgp
-from octolgp import Hyperparameters, MapConfig, OnlineMap
+from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan
 from octolgp.sim.lidar3d import simulate_lidar_room
+from octolgp.sim.mission import simulate_mission3d
+
+
+def scene_scans(scene: str) -> list[Scan]:
+    """The filtered scans of a scene."""
+    if scene == "room":
+        room = simulate_lidar_room(
+            12, seed=0, n_azimuth=1024, n_elevation=32, max_range=30.0, range_noise=0.0, n_heldout=1
+        )
+        return [s.downsample(0.2) for s in room.scans()]
+    mission = simulate_mission3d(
+        1000.0,
+        seed=0,
+        spacing=1.0,
+        n_azimuth=1024,
+        n_elevation=64,
+        fov_down=-24.9,
+        fov_up=2.0,
+        max_range=80.0,
+        range_noise=0.0,
+    )
+    return [mission.scan(100 + k).downsample(0.2) for k in range(7)]
 
 
 def main() -> None:
-    """Print the median and mean CPU seconds per insert after the first, and stage means."""
-    room = simulate_lidar_room(
-        12, seed=0, n_azimuth=1024, n_elevation=32, max_range=30.0, range_noise=0.0, n_heldout=1
-    )
-    scans = [s.downsample(0.2) for s in room.scans()]
+    """Print the median CPU and wall seconds per insert after the first, and stage means."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scene", choices=("room", "street64"), default="room")
+    parser.add_argument("--threads", type=int, default=1, help="online.n_jobs (default 1)")
+    args = parser.parse_args()
+    scans = scene_scans(args.scene)
     hp = Hyperparameters(
         length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0, beta=0.0
     )
     config = MapConfig(dim=3, resolution=0.2)
     config = dataclasses.replace(
-        config, hyperparameters=hp, online=dataclasses.replace(config.online, n_jobs=1)
+        config, hyperparameters=hp, online=dataclasses.replace(config.online, n_jobs=args.threads)
     )
     m = OnlineMap(config)
     cpu: list[float] = []
-    stages: dict[str, float] = {}
+    wall: list[float] = []
+    stages: dict[str, list[float]] = {}
+    leaves: list[int] = []
     for scan in scans:
-        t = time.thread_time()
+        t, w = time.thread_time(), time.perf_counter()
         update = m.insert_scan(scan)
         cpu.append(time.thread_time() - t)
+        wall.append(time.perf_counter() - w)
+        leaves.append(update.refit_leaves)
         for name, seconds in update.stages.items():
-            stages[name] = stages.get(name, 0.0) + seconds / len(scans)
+            stages.setdefault(name, []).append(seconds)
     m.close()
-    print(f"octolgp from {octolgp.__file__}")
+    print(f"octolgp from {octolgp.__file__}; scene {args.scene}, {args.threads} thread(s)")
     print(
-        f"CPU s per insert after the first: median {np.median(cpu[1:]):.3f}, "
-        f"mean {np.mean(cpu[1:]):.3f}; stage means (wall s): "
-        + ", ".join(f"{k} {v:.3f}" for k, v in stages.items())
+        f"after the first insert: CPU s median {np.median(cpu[1:]):.3f}, wall s median "
+        f"{np.median(wall[1:]):.3f}, refitted leaves median {int(np.median(leaves[1:]))}; "
+        "stage medians (wall s): "
+        + ", ".join(f"{k} {np.median(v[1:]):.3f}" for k, v in stages.items())
     )
 
 

@@ -272,7 +272,7 @@ def fit_leaf(
     centres = LeafGrid.from_config(config).voxel_centres(leaf.index)
     mean, var, repaired = predict_leaf(leaf, centres, config, hp, cache)
     prob = latent_occupancy(mean, var, hp)
-    return LeafFit(with_values(leaf, mean, var, prob, config.online.prune), repaired)
+    return LeafFit(with_values(leaf, mean, var, prob, config.prune), repaired)
 
 
 class ExactEngine:

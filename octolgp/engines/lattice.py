@@ -782,7 +782,7 @@ def fit_lattice_leaves(
         voxels = layout.voxels[tile_of]
         for out, values in zip((mean, var, prob), tile_values, strict=True):
             out[leaf_of[:, None], voxels] = values
-    fitted = fitted_leaves(leaves, mean, var, prob, config.online.prune)
+    fitted = fitted_leaves(leaves, mean, var, prob, config.prune)
     return [LeafFit(leaf, 0) for leaf in fitted]
 
 
