@@ -120,9 +120,8 @@ class VoxelObservations:
         return int(self.hits.size)
 
 
-def sorted_unique(values: IntArray) -> IntArray:
-    """``np.unique`` of an int64 array by one sort (numpy's hash-based unique is slower here)."""
-    a = np.sort(values, kind="stable" if values.size < 64 else "quicksort")
+def _distinct(a: IntArray) -> IntArray:
+    """The distinct values of a sorted array."""
     if a.size == 0:
         return a
     keep = np.empty(a.size, dtype=bool)
@@ -132,16 +131,14 @@ def sorted_unique(values: IntArray) -> IntArray:
     return out
 
 
+def sorted_unique(values: IntArray) -> IntArray:
+    """``np.unique`` of an int64 array by one sort (numpy's hash-based unique is slower here)."""
+    return _distinct(np.sort(values, kind="stable" if values.size < 64 else "quicksort"))
+
+
 def merge_unique(*runs: IntArray) -> IntArray:
     """The sorted unique values of ascending int64 arrays (a stable sort merges the runs)."""
-    c = np.sort(np.concatenate([np.zeros(0, dtype=np.int64), *runs]), kind="stable")
-    if c.size == 0:
-        return c
-    keep = np.empty(c.size, dtype=bool)
-    keep[0] = True
-    np.not_equal(c[1:], c[:-1], out=keep[1:])
-    out: IntArray = c[keep]
-    return out
+    return _distinct(np.sort(np.concatenate([np.zeros(0, dtype=np.int64), *runs]), kind="stable"))
 
 
 def _unique_counts(values: IntArray, ascending: bool = False) -> tuple[IntArray, IntArray]:

@@ -195,63 +195,33 @@ def test_the_newer_evidence_summary_is_the_rule_applied_scan_by_scan(clear: int,
                 assert got.replace[i] == (pos is not None)
                 if pos is not None:
                     np.testing.assert_array_equal(got.position[i], pos)
-        state: dict[int, tuple[int, int, np.ndarray | None]] = {}
-        for part in (scans[:4], scans[4:9], scans[9:]):
-            obs = observe(part, config)
-            keys = pack_keys(obs.keys).tolist()
-            h0 = np.array([state.get(k, (0, 0, None))[0] for k in keys], dtype=np.int64)
-            f0 = np.array([state.get(k, (0, 0, None))[1] for k in keys], dtype=np.int64)
-            got = advance(h0, f0, obs, np.arange(len(keys)), cap)
-            for i, k in enumerate(keys):
-                pos = state.get(k, (0, 0, None))[2]
-                if got.drop[i]:
-                    pos = None
-                if got.replace[i]:
-                    pos = got.position[i]
-                state[k] = (int(got.hits[i]), int(got.frees[i]), pos)
-        assert state.keys() == truth.keys()
-        for k, (hits, frees, pos) in truth.items():
-            assert state[k][:2] == (hits, frees)
-            assert (state[k][2] is None) == (pos is None)
-            if pos is not None:
-                np.testing.assert_array_equal(state[k][2], pos)
+        # in parts applied in turn; one scan at a time, each with its own summary
+        for parts in ((scans[:4], scans[4:9], scans[9:]), [[s] for s in scans]):
+            state: dict[int, tuple[int, int, np.ndarray | None]] = {}
+            for part in parts:
+                obs = observe(part, config)
+                keys = pack_keys(obs.keys).tolist()
+                h0 = np.array([state.get(k, (0, 0, None))[0] for k in keys], dtype=np.int64)
+                f0 = np.array([state.get(k, (0, 0, None))[1] for k in keys], dtype=np.int64)
+                got = advance(h0, f0, obs, np.arange(len(keys)), cap)
+                for i, k in enumerate(keys):
+                    pos = state.get(k, (0, 0, None))[2]
+                    if got.drop[i]:
+                        pos = None
+                    if got.replace[i]:
+                        pos = got.position[i]
+                    state[k] = (int(got.hits[i]), int(got.frees[i]), pos)
+            assert state.keys() == truth.keys()
+            for k, (hits, frees, pos) in truth.items():
+                assert state[k][:2] == (hits, frees)
+                assert (state[k][2] is None) == (pos is None)
+                if pos is not None:
+                    np.testing.assert_array_equal(state[k][2], pos)
         if clear:  # the runs exercise the rule: returns forgotten, frees near returns
             assert any(v[0] == 0 and v[1] >= clear for v in truth.values())
             assert whole.weak_frees.sum() > 0
         else:  # static: counts only add
             assert any(v[0] > 0 and v[1] > 0 for v in truth.values())
-
-
-@pytest.mark.parametrize(("clear", "cap"), [(0, 1), (1, 1), (2, 1), (3, 2)])
-def test_one_scans_summary_is_the_general_one(clear: int, cap: int) -> None:
-    from octolgp.config import OnlineConfig
-    from octolgp.geometry.keys import pack_keys
-
-    for dim in (2, 3):
-        rng = np.random.default_rng(7 * clear + dim)
-        scans = _flicker_scans(rng, dim, 10)
-        config = MapConfig(dim=dim, resolution=0.1, online=OnlineConfig(clear_scans=clear))
-        truth = _one_by_one(scans, config, clear, cap)
-        state: dict[int, tuple[int, int, np.ndarray | None]] = {}
-        for scan in scans:  # observe one scan at a time (its own summary), then advance
-            obs = observe([scan], config)
-            keys = pack_keys(obs.keys).tolist()
-            h0 = np.array([state.get(k, (0, 0, None))[0] for k in keys], dtype=np.int64)
-            f0 = np.array([state.get(k, (0, 0, None))[1] for k in keys], dtype=np.int64)
-            got = advance(h0, f0, obs, np.arange(len(keys)), cap)
-            for i, k in enumerate(keys):
-                pos = None if got.drop[i] else state.get(k, (0, 0, None))[2]
-                state[k] = (
-                    int(got.hits[i]),
-                    int(got.frees[i]),
-                    got.position[i] if got.replace[i] else pos,
-                )
-        assert state.keys() == truth.keys()
-        for k, (hits, frees, pos) in truth.items():
-            assert state[k][:2] == (hits, frees)
-            assert (state[k][2] is None) == (pos is None)
-            if pos is not None:
-                np.testing.assert_array_equal(state[k][2], pos)
 
 
 def test_frees_near_a_return_are_weak() -> None:
