@@ -294,12 +294,15 @@ class OnlineConfig:
     leaf_depth : int or None
         OctoMap tree depth of the leaves; a leaf spans ``2**(tree_depth - leaf_depth)``
         voxels per axis. ``None`` (default): 16 × 16 voxels in 2D and 8 × 8 × 8 in 3D
-        (the lattice engine fits a 3D leaf in tiles of 4 × 4 × 4, whose GP is cheaper per
-        voxel: ``LatticeConfig.tile_voxels``).
-    halo : float
+        (the lattice engine fits a leaf in tiles of 4 voxels a side, whose GP is cheaper
+        per voxel: ``LatticeConfig.tile_voxels``).
+    halo : float or None
         Overlap margin around each leaf as a fraction of its edge, in ``[0, 0.5)`` (of
         its tiles' edge where the lattice engine fits a leaf in smaller tiles, rounded
-        up to whole voxels). Default 0.2.
+        up to whole voxels). ``None`` (default): 0.45 for the 2D lattice engine (2 voxels
+        around its tiles of 4, about half a length scale of the indoor logs at 0.1 m:
+        with 1 voxel, walls' insides and unseen corners read less occupied), 0.2
+        otherwise (1 voxel around a 3D tile of 4).
     learn_scans : int or None
         With ``MapConfig.hyperparameters=None`` the first this many scans are buffered,
         the hyperparameters are learnt on them and then held fixed. ``None`` (default):
@@ -336,7 +339,7 @@ class OnlineConfig:
 
     engine: str = "lattice"
     leaf_depth: int | None = None
-    halo: float = 0.2
+    halo: float | None = None
     learn_scans: int | None = None
     n_jobs: int | None = None
     clear_scans: int | None = None
@@ -351,7 +354,9 @@ class OnlineConfig:
         if self.leaf_depth is not None:
             _integer("OnlineConfig", "leaf_depth", self.leaf_depth, 1, 16)
         ok = isinstance(self.halo, int | float) and not isinstance(self.halo, bool)
-        if not ok or not math.isfinite(self.halo) or not 0 <= self.halo < 0.5:
+        if self.halo is not None and (
+            not ok or not math.isfinite(self.halo) or not 0 <= self.halo < 0.5
+        ):
             raise OctolgpError(f"OnlineConfig.halo must be a number in [0, 0.5), got {self.halo!r}")
         if self.learn_scans is not None:
             _integer("OnlineConfig", "learn_scans", self.learn_scans, 1)
@@ -398,8 +403,8 @@ class LatticeConfig:
         Largest spacing of the inducing lattice as a fraction of the length scale, at
         least 1e-6 (:data:`MIN_SPACING`); the lattice gets
         ``ceil(halo box edge / (spacing × l))`` points per axis, at least one per 3 voxels
-        and at most ``max_inducing_per_axis``. ``None`` (default): 0.3 in 2D, 0.5 in 3D,
-        where a denser lattice does not help and a leaf costs ``k**6``.
+        and at most ``max_inducing_per_axis``. ``None`` (default): 0.4 in 2D, 0.5 in 3D,
+        where a denser lattice does not help and a tile costs ``k**(3 d)``.
     max_inducing_per_axis : int or None
         Cap on the lattice points per axis (the product table holds
         ``H k**d (k**d + 1) / 2`` floats). ``None`` (default): 12 in 2D, 4 in 3D.
@@ -416,8 +421,17 @@ class LatticeConfig:
         boxes together. A tile costs ``k**6`` in its lattice, so small tiles are cheap per
         voxel, while a leaf costs Python bookkeeping per step, so large leaves are cheap
         per voxel: the map's values are those of leaves the size of a tile, with fewer
-        leaves to keep. A power of two up to the leaf's edge. ``None`` (default): 4 in 3D
-        (leaves of 8, so 8 tiles a leaf), the leaf's edge in 2D.
+        leaves to keep, and a step refits only the tiles whose halo boxes saw a change. A
+        power of two up to the leaf's edge. ``None`` (default): 4 (16 tiles a 2D leaf of
+        16 × 16, 8 a 3D leaf of 8³).
+    min_inducing_per_axis : int or None
+        Fewest lattice points per axis whatever the length scale (a long length scale
+        does not make the posterior smooth where the noise is small: a coarse lattice
+        blurs a return over several voxels), at most ``max_inducing_per_axis``. ``None``
+        (default): points at most 4/3 voxels apart in 2D (6 on the default tile's halo
+        box of 8: with 4, a wall's occupancy spread a cell into a doorway beside it; with
+        5, a moved crate's last cell cleared a look late), 3 voxels in 3D, where a point
+        costs more.
     """
 
     evidence_cap: int = 1
@@ -426,6 +440,7 @@ class LatticeConfig:
     max_inducing_per_axis: int | None = None
     clear_margin: float | None = None
     tile_voxels: int | None = None
+    min_inducing_per_axis: int | None = None
 
     def __post_init__(self) -> None:
         _integer("LatticeConfig", "evidence_cap", self.evidence_cap, 1, 255)
@@ -434,6 +449,8 @@ class LatticeConfig:
             _positive("LatticeConfig", "inducing_spacing", self.inducing_spacing, low=MIN_SPACING)
         if self.max_inducing_per_axis is not None:
             _integer("LatticeConfig", "max_inducing_per_axis", self.max_inducing_per_axis, 2, 16)
+        if self.min_inducing_per_axis is not None:
+            _integer("LatticeConfig", "min_inducing_per_axis", self.min_inducing_per_axis, 2, 16)
         if self.clear_margin is not None:
             _positive("LatticeConfig", "clear_margin", self.clear_margin, allow_zero=True)
         if self.tile_voxels is not None:
@@ -476,18 +493,26 @@ CLEAR_MARGIN_VOXELS = 5
 DEFAULT_LEARN_SCANS = MappingProxyType({2: 40, 3: 5})
 """The default ``learn_scans`` per dimension (see :class:`OnlineConfig`)."""
 
-DEFAULT_INDUCING_SPACING = MappingProxyType({2: 0.3, 3: 0.5})
+DEFAULT_HALO = MappingProxyType({(2, "lattice"): 0.45})
+"""The default ``halo`` per (dimension, engine), 0.2 where absent (see :class:`OnlineConfig`)."""
+
+DEFAULT_INDUCING_SPACING = MappingProxyType({2: 0.4, 3: 0.5})
 """The default ``inducing_spacing`` per dimension (see :class:`LatticeConfig`)."""
 
 DEFAULT_MAX_INDUCING = MappingProxyType({2: 12, 3: 4})
 """The default ``max_inducing_per_axis`` per dimension (see :class:`LatticeConfig`)."""
+
+VOXELS_PER_INDUCING = MappingProxyType({2: 4 / 3, 3: 3.0})
+"""Per dimension, the largest lattice spacing in voxels whatever the length scale, which
+gives the default ``min_inducing_per_axis`` (see :class:`LatticeConfig`)."""
+
 
 LEAF_VOXELS_LOG2 = MappingProxyType(
     {(2, "lattice"): 4, (2, "exact"): 4, (3, "lattice"): 3, (3, "exact"): 3}
 )
 """The default leaf edge, log2 of voxels, per (dimension, engine) (see :class:`OnlineConfig`)."""
 
-DEFAULT_TILE_VOXELS = MappingProxyType({3: 4})
+DEFAULT_TILE_VOXELS = MappingProxyType({2: 4, 3: 4})
 """The default ``tile_voxels`` per dimension, at most the leaf's edge; absent: the leaf's edge
 (see :class:`LatticeConfig`)."""
 
@@ -573,6 +598,7 @@ class MapConfig:
         online = dataclasses.replace(
             self.online,
             leaf_depth=self.leaf_depth,
+            halo=self.halo,
             learn_scans=self.learn_scans,
             clear_scans=self.clear_scans,
             prune=self.prune,
@@ -583,6 +609,7 @@ class MapConfig:
             max_inducing_per_axis=self.max_inducing_per_axis,
             clear_margin=self.clear_margin,
             tile_voxels=self.tile_voxels,
+            min_inducing_per_axis=self.min_inducing_per_axis,
         )
         training = dataclasses.replace(self.training, free_margin=self.free_margin)
         return dataclasses.replace(self, online=online, lattice=lattice, training=training)
@@ -594,6 +621,13 @@ class MapConfig:
         if self.online.leaf_depth is not None:
             return self.online.leaf_depth
         return self.tree_depth - LEAF_VOXELS_LOG2[(self.dim, self.online.engine)]
+
+    @property
+    def halo(self) -> float:
+        """Leaf (or tile) overlap as a fraction of its edge (``online.halo`` or its default)."""
+        if self.online.halo is not None:
+            return self.online.halo
+        return DEFAULT_HALO.get((self.dim, self.online.engine), 0.2)
 
     @property
     def n_jobs(self) -> int:
@@ -610,6 +644,20 @@ class MapConfig:
         if self.lattice.inducing_spacing is not None:
             return self.lattice.inducing_spacing
         return DEFAULT_INDUCING_SPACING[self.dim]
+
+    @property
+    def min_inducing_per_axis(self) -> int:
+        """Fewest lattice points per axis (``lattice.min_inducing_per_axis`` or its default)."""
+        if self.lattice.min_inducing_per_axis is not None:
+            return self.lattice.min_inducing_per_axis
+        box = self.tile_voxels + 2 * self.tile_halo_voxels
+        k = math.ceil(box / VOXELS_PER_INDUCING[self.dim] - 1e-9)
+        return max(2, min(self.max_inducing_per_axis, k))
+
+    @property
+    def tile_halo_voxels(self) -> int:
+        """Whole voxels of overlap around a lattice tile: ``halo`` of its edge, rounded up."""
+        return math.ceil(self.halo * self.tile_voxels - 1e-9)
 
     @property
     def max_inducing_per_axis(self) -> int:

@@ -26,6 +26,14 @@ HP = Hyperparameters(
     length_scale=1.2, signal_variance=3.8, noise_variance=0.006, alpha=4.5, beta=1.0
 )
 CONFIG = MapConfig(dim=2, resolution=0.1, hyperparameters=HP)
+WHOLE = dataclasses.replace(
+    CONFIG,
+    online=dataclasses.replace(CONFIG.online, halo=0.2),
+    lattice=dataclasses.replace(
+        CONFIG.lattice, tile_voxels=16, inducing_spacing=0.3, min_inducing_per_axis=8
+    ),
+)
+"""A 2D map as files from before lattice tiles hold it: leaves of 16 fitted whole."""
 
 
 def _scans() -> list:  # type: ignore[type-arg]
@@ -292,7 +300,8 @@ def _as_version_2(path: Path, meta_clear_scans: int | None) -> None:
     for name in ("leaf_depth", "learn_scans", "clear_scans"):
         online.pop(name, None)
     lattice, exact = stored.pop("lattice"), stored.pop("exact")
-    for name in ("inducing_spacing", "max_inducing_per_axis", "clear_margin", "tile_voxels"):
+    names = ("inducing_spacing", "max_inducing_per_axis", "clear_margin", "tile_voxels")
+    for name in (*names, "min_inducing_per_axis"):
         lattice.pop(name, None)
     online.update(lattice, **exact, prune_free=0.1192, prune_occupied=0.971)
     online.update(kernel_cache_mb=64.0, max_inducing_per_axis=0)
@@ -319,7 +328,7 @@ def test_a_map_file_stores_its_resolved_config_whole(tmp_path: Path) -> None:
     assert stored["online"]["leaf_depth"] == 12
     assert stored["online"]["learn_scans"] == 40
     assert stored["online"]["clear_scans"] == 5
-    assert stored["lattice"]["inducing_spacing"] == 0.3
+    assert stored["lattice"]["inducing_spacing"] == 0.4
     assert stored["lattice"]["max_inducing_per_axis"] == 12
     assert stored["lattice"]["clear_margin"] == pytest.approx(0.5)
     assert stored["training"]["free_margin"] == 0.1
@@ -355,14 +364,15 @@ def test_a_reopened_map_keeps_its_config_when_the_defaults_change(
 
 
 def test_a_version_2_map_file_reopens_as_it_did(tmp_path: Path) -> None:
-    """A file of the previous layout (derived fields dropped) reopens with today's resolution."""
+    """A file of the previous layout (derived fields dropped; 2D leaves fitted whole, as
+    before tiles) reopens with today's resolution."""
     path = tmp_path / "v2.octolgp"
-    with OnlineMap(CONFIG, path=path) as m:
+    with OnlineMap(WHOLE, path=path) as m:
         m.insert_scans(_scans()[:3])
         before = _values(m)
     _as_version_2(path, meta_clear_scans=5)
     with OnlineMap.open(path) as m:
-        assert m.config == CONFIG.resolve()
+        assert m.config == WHOLE.resolve()
         assert _values(m) == before
         m.insert_scan(_scans()[3])
     con = sqlite3.connect(path)  # a write brings the file to today's version
@@ -411,6 +421,36 @@ def evidence_bytes(leaf: Leaf) -> tuple[bytes, ...]:
     return tuple(a.tobytes() for a in evidence_arrays(leaf.evidence))
 
 
+def test_a_2d_map_file_of_whole_leaves_reopens_as_it_was(tmp_path: Path) -> None:
+    """2D lattice files from before tiles (no ``tile_voxels``) fitted each 16 x 16 leaf as
+    one GP; they reopen and go on mapping so, in version 2 form too."""
+    import json
+
+    scans = _scans()
+    path = tmp_path / "old2d.octolgp"
+    with OnlineMap(WHOLE, path=path) as m:
+        m.insert_scans(scans[:3])
+        before = _values(m)
+    with OnlineMap(WHOLE) as fresh:  # what the old code made of four scans
+        fresh.insert_scans(scans[:4])
+        four = _values(fresh)
+    con = sqlite3.connect(path)
+    stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
+    del stored["lattice"]["tile_voxels"], stored["lattice"]["min_inducing_per_axis"]
+    con.execute("UPDATE meta SET value = ? WHERE key = 'config'", (json.dumps(stored),))
+    con.commit()
+    con.close()
+    with OnlineMap.open(path) as m:
+        assert m.config.tile_voxels == 16
+        assert _values(m) == before
+        m.insert_scan(scans[3])
+        assert _values(m) == four
+    _as_version_2(path, meta_clear_scans=5)
+    with OnlineMap.open(path) as m:
+        assert m.config.tile_voxels == 16
+        assert _values(m) == four
+
+
 def test_a_3d_map_file_of_leaves_of_four_reopens_as_it_was(tmp_path: Path) -> None:
     """3D lattice files from before tiles (leaves of 4 voxels, no ``tile_voxels``) reopen with
     their leaves, fitted as one tile each; a version 2 file (no ``leaf_depth``) too."""
@@ -428,7 +468,7 @@ def test_a_3d_map_file_of_leaves_of_four_reopens_as_it_was(tmp_path: Path) -> No
         before = _values(m)
     con = sqlite3.connect(path)
     stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
-    del stored["lattice"]["tile_voxels"]
+    del stored["lattice"]["tile_voxels"], stored["lattice"]["min_inducing_per_axis"]
     con.execute("UPDATE meta SET value = ? WHERE key = 'config'", (json.dumps(stored),))
     con.commit()
     con.close()

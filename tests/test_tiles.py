@@ -1,7 +1,7 @@
 """Lattice leaves fitted in tiles: the map of tile-sized leaves, with fewer leaves to keep.
 
-A 3D lattice leaf of 8 voxels a side is fitted as 8 tiles of 4, each a local GP on its
-own halo box with its own inducing lattice. Each tile sees exactly what a leaf of 4
+A 3D lattice leaf of 8 voxels a side is fitted as 8 tiles of 4, a 2D leaf of 16 as 16
+tiles of 4, each a local GP on its own halo box with its own inducing lattice. Each tile sees exactly what a leaf of 4
 voxels would see (the same counts in the same halo box, the same kept returns), so the
 maps' values must be the same; only pruning, which collapses a whole leaf, differs.
 """
@@ -10,21 +10,25 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from octolgp import Hyperparameters, MapConfig, OnlineMap
+from octolgp import Hyperparameters, MapConfig, OnlineMap, load_scans
 from octolgp.engines.lattice import KeptReturns, Returns, tile_layout, tile_returns
 from octolgp.errors import OctolgpError
 from octolgp.mapping.grid import LeafGrid
 from octolgp.sim.lidar3d import simulate_lidar_room
 
+INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
 HP = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
 
 
-def _config(leaf_voxels: int | None, prune: bool, clear_scans: int | None = None) -> MapConfig:
-    config = MapConfig(dim=3, resolution=0.2)
+def _config(
+    leaf_voxels: int | None, prune: bool, clear_scans: int | None = None, dim: int = 3
+) -> MapConfig:
+    config = MapConfig(dim=dim, resolution=0.2 if dim == 3 else 0.1)
     leaf_depth = None if leaf_voxels is None else config.tree_depth - int(np.log2(leaf_voxels))
     online = dataclasses.replace(
         config.online, n_jobs=1, prune=prune, leaf_depth=leaf_depth, clear_scans=clear_scans
@@ -39,16 +43,18 @@ def _room(n: int) -> list:
     return [s.downsample(0.2) for s in room.scans()]
 
 
-def test_the_default_3d_leaf_holds_eight_tiles() -> None:
+def test_the_default_leaves_hold_tiles_of_four() -> None:
     config = _config(None, True).resolve()
     grid = LeafGrid.from_config(config)
     assert (grid.side, config.tile_voxels, grid.halo_voxels) == (8, 4, 1)
-    assert MapConfig(dim=2, resolution=0.1).resolve().tile_voxels == 16  # 2D: the leaf
+    config = MapConfig(dim=2, resolution=0.1).resolve()
+    grid = LeafGrid.from_config(config)
+    assert (grid.side, config.tile_voxels, grid.halo_voxels) == (16, 4, 2)
 
 
-@pytest.mark.parametrize("clear_scans", [None, 0])
+@pytest.mark.parametrize(("dim", "clear_scans"), [(3, None), (3, 0), (2, None)])
 def test_tiled_leaves_give_the_map_of_tile_sized_leaves(
-    clear_scans: int | None, monkeypatch: pytest.MonkeyPatch
+    dim: int, clear_scans: int | None, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Scan after scan, a changed leaf refits only the tiles whose halo boxes changed and
     keeps the others' values: the map stays that of tile-sized leaves refitted whole."""
@@ -63,9 +69,9 @@ def test_tiled_leaves_give_the_map_of_tile_sized_leaves(
         return fit(*args)  # type: ignore[arg-type]
 
     monkeypatch.setattr(lattice_module, "fit_lattice_leaves", spy)
-    scans = _room(6)
-    tiled = OnlineMap(_config(None, False, clear_scans))
-    small = OnlineMap(_config(4, False, clear_scans))
+    scans = _room(6) if dim == 3 else list(load_scans(INTEL20))[:12]
+    tiled = OnlineMap(_config(None, False, clear_scans, dim))
+    small = OnlineMap(_config(4, False, clear_scans, dim))
     for scan in scans:  # one by one: leaves change and are refitted scan after scan
         tiled.insert_scan(scan)
         small.insert_scan(scan)

@@ -486,8 +486,8 @@ def lattice_geometry(config: MapConfig, hp: Hyperparameters) -> LatticeGeometry:
     tile = config.tile_voxels
     k_max = config.max_inducing_per_axis
     box = tile + 2 * grid.halo_voxels
-    k_min = min(k_max, box // 3)  # at least one lattice point per 3 voxels
     edge = box * grid.resolution
+    k_min = config.min_inducing_per_axis
     k = inducing_per_axis(edge, hp.length_scale, config.inducing_spacing, k_min, k_max)
     return LatticeGeometry(config.dim, tile, grid.halo_voxels, k, grid.resolution)
 

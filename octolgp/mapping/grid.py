@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import functools
 import itertools
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -64,12 +63,10 @@ class LeafGrid:
         A lattice leaf fitted in tiles smaller than itself keeps the tiles' halo: the
         ``online.halo`` of a tile's edge, in whole voxels (``LatticeConfig.tile_voxels``).
         """
-        oc = config.online
-        halo = oc.halo
+        halo = config.halo
         side = 1 << (config.tree_depth - config.leaf_depth)
-        tile = config.tile_voxels
-        if oc.engine == "lattice" and tile < side:
-            halo = math.ceil(oc.halo * tile - 1e-9) / side
+        if config.online.engine == "lattice" and config.tile_voxels < side:
+            halo = config.tile_halo_voxels / side
         return cls(config.dim, float(config.resolution), config.tree_depth, config.leaf_depth, halo)
 
     @property

@@ -179,7 +179,10 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     derived fields: their engine is ``"exact"`` when absent (files from before the
     lattice engine) and their ``clear_scans`` the ``clear_scans`` meta row (0 where
     absent, files from before forgetting), a 3D lattice map's ``leaf_depth`` that of
-    leaves of 4 voxels a side; the other derived fields take the defaults they had when
+    leaves of 4 voxels a side. Files from before lattice tiles (no ``lattice.tile_voxels``)
+    fitted each leaf as one tile on a 2D lattice spacing of 0.3, and files from before
+    ``lattice.min_inducing_per_axis`` one lattice point per 3 voxels of the halo box at
+    least; the config keeps both. The other derived fields take the defaults they had when
     those files were written, which are today's.
 
     Raises
@@ -194,6 +197,17 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     if "leaf_depth" not in online and online["engine"] == "lattice" and stored.get("dim", 3) == 3:
         # 3D lattice leaves had 4 voxels a side before leaves held 8 in tiles of 4
         online["leaf_depth"] = int(stored.get("tree_depth", 16)) - 2
+    lattice = stored.setdefault("lattice", {})
+    if online["engine"] == "lattice" and isinstance(lattice, dict) and "tile_voxels" not in lattice:
+        config = MapConfig.from_dict(stored)  # leaves fitted whole before tiles existed
+        lattice["tile_voxels"] = 1 << (config.tree_depth - config.leaf_depth)
+        if config.dim == 2 and "inducing_spacing" not in {*lattice, *online}:
+            lattice["inducing_spacing"] = 0.3  # the 2D default of whole leaves
+    old = isinstance(lattice, dict) and "min_inducing_per_axis" not in lattice
+    if online["engine"] == "lattice" and old:  # one lattice point per 3 voxels, as then
+        config = MapConfig.from_dict(stored)
+        box = config.tile_voxels + 2 * config.tile_halo_voxels
+        lattice["min_inducing_per_axis"] = max(2, min(config.max_inducing_per_axis, box // 3))
     if "clear_scans" not in online:
         written = int(clear_scans or "0")
         if MapConfig.from_dict(stored).clear_scans != written:
