@@ -335,6 +335,15 @@ class OnlineConfig:
         3D lattice engine, whose leaves of 8³ voxels would lose too much (held-out AUC of
         the KITTI fixture 0.981 → 0.919, the sparse street 0.985 → 0.962; BENCHMARKS.md,
         "Live 3D, second part") for about 40 % more leaf memory.
+    defer_fit : bool
+        Fit the leaves a scan changes when the map is next read (a query, an export, a
+        save, :meth:`OnlineMap.settle <octolgp.OnlineMap.settle>`) rather than in
+        ``insert_scan``: a sensor that keeps touching a leaf scan after scan costs one
+        fit of it per read, not one per scan, and an insert is the observation and the
+        evidence update only. What a read returns is the same either way. It applies
+        to the lattice engine on a map with neither a map file, a memory budget nor a
+        sink (those record or show every step's values); otherwise leaves are fitted in
+        ``insert_scan``. Default True.
     """
 
     engine: str = "lattice"
@@ -345,6 +354,7 @@ class OnlineConfig:
     clear_scans: int | None = None
     max_scan_points: int = 1_000_000
     prune: bool | None = None
+    defer_fit: bool = True
 
     def __post_init__(self) -> None:
         if self.engine not in ("lattice", "exact"):
@@ -372,6 +382,8 @@ class OnlineConfig:
         _integer("OnlineConfig", "max_scan_points", self.max_scan_points, 1)
         if self.prune is not None and not isinstance(self.prune, bool):
             raise OctolgpError(f"OnlineConfig.prune must be a bool, got {self.prune!r}")
+        if not isinstance(self.defer_fit, bool):
+            raise OctolgpError(f"OnlineConfig.defer_fit must be a bool, got {self.defer_fit!r}")
 
 
 @dataclass(frozen=True, slots=True)

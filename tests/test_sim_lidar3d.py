@@ -217,7 +217,7 @@ def test_tool_reports_learning_and_flush_rows(bench: ModuleType) -> None:
     assert "flush() after the last scan s (learn 1.50 s, then fit 3 buffered scans" in text
     assert "| 4.00 |" in text
     assert "hyperparameters known (0 scans" in text
-    assert "| total s, every insert (+ flush) | 4.01 | 0.30 | 13.4× |" in text
+    assert "| total s, every insert (+ flush, + settle) | 4.01 | 0.30 | 13.4× |" in text
 
 
 def test_tool_quick_run(bench: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:

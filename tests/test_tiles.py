@@ -70,21 +70,31 @@ def test_tiled_leaves_give_the_map_of_tile_sized_leaves(
 
     monkeypatch.setattr(lattice_module, "fit_lattice_leaves", spy)
     scans = _room(6) if dim == 3 else list(load_scans(INTEL20))[:12]
-    tiled = OnlineMap(_config(None, False, clear_scans, dim))
-    small = OnlineMap(_config(4, False, clear_scans, dim))
+
+    def fitted_at_once(config: MapConfig) -> MapConfig:
+        return dataclasses.replace(
+            config, online=dataclasses.replace(config.online, defer_fit=False)
+        )
+
+    tiled = OnlineMap(fitted_at_once(_config(None, False, clear_scans, dim)))
+    small = OnlineMap(fitted_at_once(_config(4, False, clear_scans, dim)))
+    deferred = OnlineMap(_config(None, False, clear_scans, dim))  # all tiles, at the end
     for scan in scans:  # one by one: leaves change and are refitted scan after scan
         tiled.insert_scan(scan)
         small.insert_scan(scan)
+        deferred.insert_scan(scan)
     assert sum(kept_tiles) > 0  # some tiles kept their values
     assert len(tiled.store) * 4 < len(small.store)
     centres, _ = small.voxels()
     for read in ("occupancy", "latent"):
         a = getattr(tiled, read)(centres, interpolate=False)
         b = getattr(small, read)(centres, interpolate=False)
+        c = getattr(deferred, read)(centres, interpolate=False)
         # the same float64 system per tile, computed in the same kernel: equal values
         np.testing.assert_array_equal(a, b)
-    tiled.close()
-    small.close()
+        np.testing.assert_array_equal(c, b)
+    for m in (tiled, small, deferred):
+        m.close()
 
 
 def test_with_pruning_only_the_pruned_voxels_differ() -> None:

@@ -438,7 +438,11 @@ def gather_observations(
         if r:
             changed.append((keys[j], leaf))
             if stale is not None:  # tiles keep their values only where the leaf holds all
-                fresh.append(~stale[j] if leaf.mean.size == full else np.zeros_like(stale[j]))
+                fresh.append(
+                    ~stale[j]
+                    if leaf.mean.size == full and not leaf.pending
+                    else np.zeros_like(stale[j])
+                )
         else:
             kept.append((keys[j], leaf))
     gained = int(copies[d_h].sum() + copies[d_f].sum())

@@ -306,10 +306,12 @@ class OnlineMap(MapReads):
 
         This map, or a provisional fit of the buffered scans while it learns its
         hyperparameters. Every read of :class:`~octolgp.mapping.query.MapReads` goes
-        through it; a closed or broken map refuses.
+        through it, after the leaves whose fits inserts deferred are fitted
+        (:meth:`settle`); a closed or broken map refuses.
         """
         with self._lock:
             self._check("read")
+            self._settle()
             yield self if not self.provisional else self._bootstrap.provisional(_provisional_map)
 
     @contextmanager
@@ -453,15 +455,24 @@ class OnlineMap(MapReads):
         return update
 
     def _step(self, scans: list[Scan], journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate:
-        """Scans → evidence per leaf → refit the leaves whose GP inputs changed → write."""
+        """Scans → evidence per leaf → refit the leaves whose GP inputs changed → write.
+
+        With :attr:`defers_fit` the changed leaves are stored pending (their new
+        evidence, their old values) and fitted when the map is next read.
+        """
         index = journal[-1][0] if journal else self.n_scans
         stages: dict[str, float] = {}
         # 1. scans → the engine's evidence → the leaves it changes (new leaf objects)
         with self._workers.one_blas_thread():
             evidence = self.engine.evidence(scans, self.store.get, stages)
-        # 2. leaves → local GP → PLSC, on the map's threads
-        fits = self._fit([leaf for _, leaf in evidence.changed], stages, fresh=evidence.fresh)
-        fitted = [(k, f.leaf) for (k, _), f in zip(evidence.changed, fits, strict=True)]
+        # 2. leaves → local GP → PLSC, on the map's threads (or at the next read)
+        if self.defers_fit:
+            for _, leaf in evidence.changed:  # new objects: marked, not copied
+                leaf.pending = True
+            fitted, fits = evidence.changed, []
+        else:
+            fits = self._fit([leaf for _, leaf in evidence.changed], stages, fresh=evidence.fresh)
+            fitted = [(k, f.leaf) for (k, _), f in zip(evidence.changed, fits, strict=True)]
         # 3. the one write: store, file, then the sink
         t = time.perf_counter()
         self._write(
@@ -475,10 +486,53 @@ class OnlineMap(MapReads):
         for i, s in journal:  # shown once in the map
             self.sink.on_scan(s, i)
         update = self._update(
-            index, t0, stages, len(evidence.touched), fits, new_items=evidence.new_items
+            index,
+            t0,
+            stages,
+            len(evidence.touched),
+            fits,
+            new_items=evidence.new_items,
+            refit=len(fitted),
         )
         self.sink.on_update(update, self._change(fitted))
         return update
+
+    @property
+    def defers_fit(self) -> bool:
+        """Whether inserts leave the changed leaves' fits to the next read.
+
+        ``OnlineConfig.defer_fit`` on a lattice map with neither a map file (nor the
+        spill file of a memory budget) nor a sink: each of those records or shows
+        every step's values, so such a map fits in ``insert_scan``.
+        """
+        return (
+            self.config.online.defer_fit
+            and self.config.online.engine == "lattice"
+            and self._file is None
+            and isinstance(self.sink, NullSink)
+        )
+
+    def settle(self) -> int:
+        """Fit every leaf whose fit an insert deferred (``OnlineConfig.defer_fit``) now.
+
+        Every read does this first, so calling it only chooses when the cost is paid
+        (before a time-critical query, say). The map's values are those of fitting at
+        every insert. Returns the number of leaves fitted.
+        """
+        with self._lock:
+            self._check("settle")
+            return self._settle()
+
+    def _settle(self) -> int:
+        """Fit the pending leaves, all tiles of each, and store them (no scan stamp)."""
+        keys = self.store.pending
+        if not keys:
+            return 0
+        leaves = [leaf for k in keys if (leaf := self.store.get(k)) is not None]
+        assert len(leaves) == len(keys)  # pending leaves stay in RAM: no file to evict to
+        fits = self._fit(leaves)
+        self._write([(k, f.leaf) for k, f in zip(keys, fits, strict=True)])
+        return len(keys)
 
     @_step_of_state
     def correct_scans(self, corrections: Mapping[int, ArrayLike]) -> ScanUpdate:
@@ -828,12 +882,17 @@ class OnlineMap(MapReads):
         fits: list[LeafFit],
         new_items: int,
         removed: int = 0,
+        refit: int | None = None,
     ) -> ScanUpdate:
-        """The record of a step that refitted ``fits``."""
+        """The record of a step that refitted ``fits``.
+
+        ``refit``: the leaves whose GP inputs changed, when they are not ``fits`` (a
+        deferred fit).
+        """
         return ScanUpdate(
             scan=scan,
             touched_leaves=touched,
-            refit_leaves=len(fits),
+            refit_leaves=len(fits) if refit is None else refit,
             new_items=new_items,
             pruned_leaves=sum(f.leaf.pruned for f in fits),
             seconds=time.perf_counter() - t0,

@@ -67,6 +67,10 @@ class Leaf:
         How many times the leaf's GP was fitted.
     touched : int
         Number of the last scan that touched the leaf (for least-recently-used order).
+    pending : bool
+        Whether the evidence changed since the voxel values were fitted (a deferred fit,
+        ``OnlineConfig.defer_fit``): the values are those of older evidence until the
+        map settles (:meth:`octolgp.OnlineMap.settle`), which every read does first.
     """
 
     index: IntArray
@@ -77,6 +81,7 @@ class Leaf:
     pruned: bool = False
     refits: int = 0
     touched: int = 0
+    pending: bool = False
 
     def evolve(self, **changes: object) -> Leaf:
         """A shallow copy with ``changes`` applied (``dataclasses.replace``, cheaper).
@@ -101,6 +106,7 @@ class Leaf:
             self.pruned,
             self.refits,
             self.touched,
+            self.pending,
         )
 
     def refitted(
@@ -109,7 +115,7 @@ class Leaf:
         """A shallow copy with fresh voxel values and one more refit, for hot loops.
 
         Equal to ``evolve(mean=mean, var=var, prob=prob, pruned=pruned,
-        refits=self.refits + 1)``.
+        refits=self.refits + 1, pending=False)``.
         """
         return Leaf(
             self.index, self.evidence, mean, var, prob, pruned, self.refits + 1, self.touched
@@ -128,7 +134,7 @@ class Leaf:
 
 
 _LEAF_FIELDS = frozenset(
-    ("index", "evidence", "mean", "var", "prob", "pruned", "refits", "touched")
+    ("index", "evidence", "mean", "var", "prob", "pruned", "refits", "touched", "pending")
 )
 
 
@@ -227,6 +233,7 @@ class LeafStore:
         self._keys: set[int] = set()  # every key, in RAM or in the file
         self._dirty: set[int] = set()  # in RAM and not yet in the file
         self._sizes: dict[int, int] = {}  # each RAM leaf's nbytes, as _nbytes counts it
+        self._pending: set[int] = set()  # leaves whose values wait for a fit
         self._nbytes = 0
         self.budget_bytes = budget_bytes
         self.backing: LeafBacking | None = None
@@ -305,6 +312,10 @@ class LeafStore:
             move(key)
             keys.add(key)
             dirty.add(key)
+            if leaf.pending:
+                self._pending.add(key)
+            else:
+                self._pending.discard(key)
 
     def remove(self, keys: Iterable[int]) -> None:
         """Drop leaves from the map (a correction left them without evidence)."""
@@ -314,10 +325,16 @@ class LeafStore:
                 self._nbytes -= self._sizes.pop(key)
             self._keys.discard(key)
             self._dirty.discard(key)
+            self._pending.discard(key)
 
     def persisted(self, keys: Iterable[int]) -> None:
         """Mark leaves as written to the backing file."""
         self._dirty.difference_update(int(k) for k in keys)
+
+    @property
+    def pending(self) -> list[int]:
+        """Keys of leaves whose voxel values wait for a fit (:attr:`Leaf.pending`)."""
+        return sorted(self._pending)
 
     @property
     def dirty(self) -> list[int]:

@@ -16,7 +16,8 @@ class ScanUpdate:
     touched_leaves : int
         Leaves whose box or halo the scan's evidence reached.
     refit_leaves : int
-        Touched leaves that gained evidence and were refitted and re-predicted.
+        Touched leaves whose GP inputs changed: refitted and re-predicted in the call,
+        or, when the map defers fits (:attr:`OnlineMap.defers_fit`), at its next read.
     new_items : int
         Training items added over all leaves.
     pruned_leaves : int

@@ -88,8 +88,11 @@ def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
     Little-endian: the 40-byte header (magic, record version, dimension, number of
     voxel values, pruned, refits, touched), the index (int64), mean, variance and
     P(occupied) (float32), :meth:`LeafEngine.encode` of the evidence, then the CRC-32
-    of everything before it (uint32).
+    of everything before it (uint32). A leaf waiting for its fit (``leaf.pending``)
+    is refused (``ValueError``): its values are not those of its evidence.
     """
+    if leaf.pending:
+        raise ValueError("a leaf whose fit is pending cannot be written")
     d, v = int(leaf.index.size), leaf.prob.size
     head = _HEADER.pack(_LEAF_MAGIC, _RECORD, d, v, int(leaf.pruned), leaf.refits, leaf.touched)
     parts = (
