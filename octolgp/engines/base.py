@@ -94,11 +94,14 @@ class LeafEngine(Protocol):
     config: MapConfig
     grid: LeafGrid
 
-    def evidence(self, scans: list[Scan], lookup: Lookup, stats: dict[str, float]) -> Evidence:
+    def evidence(
+        self, scans: list[Scan], lookup: Lookup, stats: dict[str, float], *, fresh: bool = True
+    ) -> Evidence:
         """Scans (in time order) → the leaves they change, as new leaves.
 
         ``stats["training"]`` and ``stats["assign"]`` accumulate the seconds of making
-        the step's observations and of assigning them to leaves.
+        the step's observations and of assigning them to leaves. ``fresh``: whether to
+        work out :attr:`Evidence.fresh` (a map that fits later refits leaves whole).
         """
         ...
 

@@ -296,8 +296,13 @@ class ExactEngine:
         )
         self.kernel_cache = KernelCache(KERNEL_CACHE_BYTES)
 
-    def evidence(self, scans: list[Scan], lookup: Lookup, stats: dict[str, float]) -> Evidence:
-        """Scans → hits and free segments → the leaves that gain items."""
+    def evidence(
+        self, scans: list[Scan], lookup: Lookup, stats: dict[str, float], *, fresh: bool = True
+    ) -> Evidence:
+        """Scans → hits and free segments → the leaves that gain items.
+
+        A leaf is one GP, so no part of it is ever fresh: ``fresh`` is unused.
+        """
         with stage(stats, "training"):
             data = make_training_data(scans, self._raw)
         with stage(stats, "assign"):

@@ -346,7 +346,12 @@ def _stored_counts(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint8]:
 
 
 def gather_observations(
-    obs: VoxelObservations, grid: LeafGrid, config: MapConfig, lookup: Lookup
+    obs: VoxelObservations,
+    grid: LeafGrid,
+    config: MapConfig,
+    lookup: Lookup,
+    *,
+    fresh: bool = True,
 ) -> Evidence:
     """Apply a step's voxel observations to the leaves whose halo boxes hold the voxels.
 
@@ -366,6 +371,9 @@ def gather_observations(
     lookup : callable
         The current leaf of a packed key, or ``None``; only read, once per touched
         leaf in ascending key order.
+    fresh : bool
+        Whether to work out the tiles of each changed leaf that a refit may keep
+        (``Evidence.fresh``); a map that fits later refits its leaves whole.
 
     Returns
     -------
@@ -418,10 +426,14 @@ def gather_observations(
         pack_keys(obs.keys),
         grid.dim,
     )
-    stale = _stale_tiles(inverse[effective_p], flat[effective_p], touched.size, grid, config)
+    stale = (
+        _stale_tiles(inverse[effective_p], flat[effective_p], touched.size, grid, config)
+        if fresh
+        else None
+    )
     changed: list[tuple[int, Leaf]] = []
     kept: list[tuple[int, Leaf]] = []
-    fresh: list[NDArray[np.bool_]] = []
+    fresh_tiles: list[NDArray[np.bool_]] = []
     full = grid.voxels_per_leaf
     touched_index = unpack_keys(touched, grid.dim)
     sel = np.flatnonzero(new_counts)
@@ -438,7 +450,7 @@ def gather_observations(
         if r:
             changed.append((keys[j], leaf))
             if stale is not None:  # tiles keep their values only where the leaf holds all
-                fresh.append(
+                fresh_tiles.append(
                     ~stale[j]
                     if leaf.mean.size == full and not leaf.pending
                     else np.zeros_like(stale[j])
@@ -446,7 +458,7 @@ def gather_observations(
         else:
             kept.append((keys[j], leaf))
     gained = int(copies[d_h].sum() + copies[d_f].sum())
-    tiles_fresh = None if stale is None or not changed else np.stack(fresh)
+    tiles_fresh = None if stale is None or not changed else np.stack(fresh_tiles)
     return Evidence(changed, keys, gained, kept, tiles_fresh)
 
 
@@ -805,12 +817,14 @@ class LatticeEngine:
         self.config = config
         self.grid = LeafGrid.from_config(config)
 
-    def evidence(self, scans: list[Scan], lookup: Lookup, stats: dict[str, float]) -> Evidence:
+    def evidence(
+        self, scans: list[Scan], lookup: Lookup, stats: dict[str, float], *, fresh: bool = True
+    ) -> Evidence:
         """Scans → voxel observations → the leaves whose counts move."""
         with stage(stats, "training"):
             obs = observe(scans, self.config)
         with stage(stats, "assign"):
-            return gather_observations(obs, self.grid, self.config, lookup)
+            return gather_observations(obs, self.grid, self.config, lookup, fresh=fresh)
 
     def fit(
         self,

@@ -464,7 +464,9 @@ class OnlineMap(MapReads):
         stages: dict[str, float] = {}
         # 1. scans → the engine's evidence → the leaves it changes (new leaf objects)
         with self._workers.one_blas_thread():
-            evidence = self.engine.evidence(scans, self.store.get, stages)
+            evidence = self.engine.evidence(
+                scans, self.store.get, stages, fresh=not self.defers_fit
+            )
         # 2. leaves → local GP → PLSC, on the map's threads (or at the next read)
         if self.defers_fit:
             for _, leaf in evidence.changed:  # new objects: marked, not copied
