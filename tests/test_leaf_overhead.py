@@ -42,9 +42,17 @@ HP = Hyperparameters(
 
 
 def reference_gather(
-    obs: VoxelObservations, grid: LeafGrid, config: MapConfig, lookup: Lookup
+    obs: VoxelObservations,
+    grid: LeafGrid,
+    config: MapConfig,
+    lookup: Lookup,
+    *,
+    fresh: bool = True,
 ) -> Evidence:
-    """The gather done plainly: the rule on every voxel copy, one leaf at a time."""
+    """The gather done plainly: the rule on every voxel copy, one leaf at a time.
+
+    It works out no fresh tiles (``fresh`` is unused): its leaves are refitted whole.
+    """
     voxel, leaf_key, flat = halo_copies(obs, grid)
     touched = np.unique(leaf_key)
     inverse = np.searchsorted(touched, leaf_key)
@@ -217,6 +225,10 @@ class ReferenceStore(LeafStore):
             self._leaves.move_to_end(key)
             self._keys.add(key)
             self._dirty.add(key)
+            if leaf.pending:
+                self._pending.add(key)
+            else:
+                self._pending.discard(key)
 
     def remove(self, keys: Iterable[int]) -> None:
         for key in keys:
@@ -226,6 +238,7 @@ class ReferenceStore(LeafStore):
                 self._nbytes -= old.nbytes
             self._keys.discard(key)
             self._dirty.discard(key)
+            self._pending.discard(key)
 
     def trim(self) -> int:
         if self.budget_bytes is None or self.backing is None:
@@ -249,9 +262,13 @@ def _scans(n: int) -> list[Scan]:
     return [s.downsample(0.2) for s in room.scans()]
 
 
-def _config(clear_scans: int | None, budget: float | None, prune: bool | None = None) -> MapConfig:
+def _config(
+    clear_scans: int | None, budget: float | None, prune: bool | None = None, defer: bool = True
+) -> MapConfig:
     config = MapConfig(dim=3, resolution=0.2, memory_budget_mb=budget)
-    online = dataclasses.replace(config.online, n_jobs=1, clear_scans=clear_scans, prune=prune)
+    online = dataclasses.replace(
+        config.online, n_jobs=1, clear_scans=clear_scans, prune=prune, defer_fit=defer
+    )
     return dataclasses.replace(config, hyperparameters=HP, online=online)
 
 
@@ -263,6 +280,7 @@ def _leaf_state(leaf: Leaf) -> tuple[object, ...]:
         leaf.pruned,
         leaf.refits,
         leaf.touched,
+        leaf.pending,
     )
 
 
@@ -289,16 +307,23 @@ def _evidence_state(evidence: Evidence) -> tuple[object, ...]:
 
 
 @pytest.mark.parametrize(
-    ("clear_scans", "budget", "prune"), [(None, None, None), (0, None, True), (2, 0.05, True)]
+    ("clear_scans", "budget", "prune", "defer"),
+    [
+        (None, None, None, False),
+        (None, None, None, True),
+        (0, None, True, False),
+        (2, 0.05, True, True),  # a budget's spill file: fitted at every insert anyway
+    ],
 )
 def test_maps_equal_those_of_the_straightforward_path(
     monkeypatch: pytest.MonkeyPatch,
     clear_scans: int | None,
     budget: float | None,
     prune: bool | None,
+    defer: bool,
 ) -> None:
     scans = _scans(6)
-    config = _config(clear_scans, budget, prune)
+    config = _config(clear_scans, budget, prune, defer)
     fast = OnlineMap(config)
     with monkeypatch.context() as m:
         m.setattr(lattice_module, "gather_observations", reference_gather)
@@ -323,6 +348,12 @@ def test_maps_equal_those_of_the_straightforward_path(
         assert fast.store.nbytes == sum(leaf.nbytes for leaf in resident)
     assert a.refit_leaves
     assert a.touched_leaves > a.refit_leaves  # kept leaves too
+    assert bool(fast.store.pending) == fast.defers_fit
+    fast.settle()
+    with monkeypatch.context() as m:
+        m.setattr(lattice_module, "fit_lattice_leaves", reference_fit)
+        plain.settle()
+    assert _store_state(fast.store) == _store_state(plain.store)
     if budget is not None:
         assert fast.store.evictions
         assert fast.store.loads

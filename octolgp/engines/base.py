@@ -175,6 +175,7 @@ def with_values(
         prob=prob.astype(np.float32),
         pruned=pruned,
         refits=leaf.refits + 1,
+        pending=False,
     )
 
 
