@@ -71,7 +71,7 @@ def parse(value: str) -> object:
             return kind(value)
         except ValueError:
             pass
-    return {"True": True, "False": False}.get(value, value)
+    return {"true": True, "false": False}.get(value.lower(), value)
 
 
 def config_of(variant: str) -> MapConfig:
