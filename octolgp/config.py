@@ -227,6 +227,14 @@ class LearningConfig:
         engine's and the batch map's model. ``"engine"`` (default): the online
         engine's own, voxels for ``online.engine="lattice"``, segments for
         ``"exact"``.
+    max_beams : int or None
+        On the voxel model, the learning scans are thinned to every k-th beam (the
+        smallest k) so that at most this many beams are turned into voxel
+        observations; ``None``: every beam. The sets hold a few thousand items, while
+        five lidar scans to 80 m observe millions of voxels, most of the learning's
+        time; 40 scans of a 2D laser (up to 361 beams) stay whole, five filtered lidar
+        scans keep every 2nd to 4th beam (BENCHMARKS.md, "Live 3D, third part").
+        Default 25_000.
     """
 
     max_clusters: int = 8
@@ -234,6 +242,7 @@ class LearningConfig:
     seed: int = 0
     objective: str = "lml"
     model: str = "engine"
+    max_beams: int | None = 25_000
 
     def __post_init__(self) -> None:
         if self.objective not in ("lml+loo", "lml"):
@@ -247,6 +256,8 @@ class LearningConfig:
         _integer("LearningConfig", "max_clusters", self.max_clusters, 1)
         _integer("LearningConfig", "max_items_per_cluster", self.max_items_per_cluster, 4)
         _integer("LearningConfig", "seed", self.seed, 0)
+        if self.max_beams is not None:
+            _integer("LearningConfig", "max_beams", self.max_beams, 1)
 
 
 @dataclass(frozen=True, slots=True)

@@ -241,3 +241,35 @@ def test_voxel_learning_with_lml_loo_refinement_runs_and_stays_in_bounds() -> No
     hp = learn_hyperparameters(_room_scans(4, 90), config)
     assert 1e-2 <= hp.length_scale <= 1e2
     assert hp.alpha > 0
+
+
+def test_learning_thins_large_scans_to_every_kth_beam() -> None:
+    rng = np.random.default_rng(5)
+    scans = [Scan(origin=np.zeros(2), points=rng.uniform(-4, 4, (n, 2))) for n in (100, 250, 37)]
+    assert learning_module.thinned(scans, None) is scans
+    assert learning_module.thinned(scans, 387) is scans  # every beam fits
+    for cap in (386, 200, 100, 1):
+        out = learning_module.thinned(scans, cap)
+        k = -(-387 // cap)  # the smallest stride that fits
+        assert sum(len(s) for s in out) <= cap or k > max(len(s) for s in scans)
+        for a, b in zip(scans, out, strict=True):
+            np.testing.assert_array_equal(b.points, a.points[::k])
+            np.testing.assert_array_equal(b.origin, a.origin)
+            assert b.max_range == a.max_range
+
+
+def test_learning_on_thinned_scans_is_learning_on_those_beams() -> None:
+    scans = _room_scans(3, 180)
+    total = sum(len(s) for s in scans)
+    config = MapConfig(dim=2, resolution=0.1, learning=LearningConfig(max_beams=total // 2))
+    whole = MapConfig(dim=2, resolution=0.1, learning=LearningConfig(max_beams=None))
+    k = -(-total // (total // 2))
+    thin = [dataclasses.replace(s, points=s.points[::k]) for s in scans]
+    assert learn_hyperparameters(scans, config) == learn_hyperparameters(thin, whole)
+    assert LearningConfig().max_beams == 25_000
+
+
+@pytest.mark.parametrize("value", [0, -3, 2.5, True])
+def test_bad_max_beams_is_refused(value: object) -> None:
+    with pytest.raises(OctolgpError, match=r"LearningConfig\.max_beams"):
+        LearningConfig(max_beams=value)  # type: ignore[arg-type]

@@ -23,6 +23,7 @@ models (``LearningConfig.model``):
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -351,6 +352,18 @@ def voxel_learning_sets(
     return sets
 
 
+def thinned(scans: list[Scan], max_beams: int | None) -> list[Scan]:
+    """Every k-th beam of each scan, the smallest k leaving at most ``max_beams`` in all.
+
+    The scans themselves when they hold no more (or ``max_beams`` is ``None``).
+    """
+    total = sum(len(s) for s in scans)
+    if max_beams is None or total <= max_beams:
+        return scans
+    k = -(-total // max_beams)
+    return [dataclasses.replace(s, points=s.points[::k]) for s in scans]
+
+
 def learn_from_voxels(scans: Iterable[Scan], config: MapConfig) -> Hyperparameters:
     """Learn on voxel observations: the kernel by LML on :func:`voxel_learning_sets`, then α, β.
 
@@ -362,7 +375,7 @@ def learn_from_voxels(scans: Iterable[Scan], config: MapConfig) -> Hyperparamete
     OctolgpError
         On scans that observe no voxel or hold no return.
     """
-    points, y, weights = voxel_observations(scans, config)
+    points, y, weights = voxel_observations(thinned(list(scans), config.learning.max_beams), config)
     if y.size == 0:
         raise _no_data()
     if not np.any(y > 0):

@@ -185,8 +185,9 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     leaves of 4 voxels a side. Files from before lattice tiles (no ``lattice.tile_voxels``)
     fitted each leaf as one tile on a 2D lattice spacing of 0.3, and files from before
     ``lattice.min_inducing_per_axis`` one lattice point per 3 voxels of the halo box at
-    least; the config keeps both. The other derived fields take the defaults they had when
-    those files were written, which are today's.
+    least; the config keeps both, and files from before ``learning.max_beams`` learnt on
+    every beam. The other derived fields take the defaults they had when those files
+    were written, which are today's.
 
     Raises
     ------
@@ -211,6 +212,9 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         config = MapConfig.from_dict(stored)
         box = config.tile_voxels + 2 * config.tile_halo_voxels
         lattice["min_inducing_per_axis"] = max(2, min(config.max_inducing_per_axis, box // 3))
+    learning = stored.setdefault("learning", {})
+    if isinstance(learning, dict) and "max_beams" not in learning:
+        learning["max_beams"] = None  # learnt on every beam, as then
     if "clear_scans" not in online:
         written = int(clear_scans or "0")
         if MapConfig.from_dict(stored).clear_scans != written:
