@@ -151,3 +151,40 @@ def test_learning_inserts_defer_too_and_reads_answer_in_between(intel: list[Scan
         np.testing.assert_array_equal(lazy.occupancy(probe), eager.occupancy(probe))
     assert lazy.hyperparameters == eager.hyperparameters
     assert leaf_bytes(lazy) == leaf_bytes(eager)
+
+
+@pytest.mark.parametrize("finish", ["flush", "insert_batch", "set_hyperparameters"])
+def test_ending_the_learning_any_way_gives_the_map_fitted_at_once(
+    finish: str, intel: list[Scan]
+) -> None:
+    """The buffered scans' evidence is stored as they come (it needs no hyperparameters);
+    flush, a batch or given hyperparameters then end the learning without storing it twice."""
+    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=8))
+    lazy, eager = OnlineMap(config), OnlineMap(with_defer(config, False))
+    for m in (lazy, eager):
+        m.insert_scans(intel[:5])  # buffered, fewer than learn_scans
+        if finish == "flush":
+            update = m.flush()
+            assert update is not None
+            assert "learning" in update.stages
+        elif finish == "insert_batch":
+            m.insert_batch(intel[5:9])
+        else:
+            m.set_hyperparameters(HP2)
+        assert m.hyperparameters is not None
+        assert not m.provisional
+    assert lazy.hyperparameters == eager.hyperparameters
+    assert leaf_bytes(lazy) == leaf_bytes(eager)
+    assert lazy.n_scans == eager.n_scans
+
+
+def test_a_learning_insert_stores_one_scan_and_learns(intel: list[Scan]) -> None:
+    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=4))
+    m = OnlineMap(config)
+    updates = m.insert_scans(intel[:4])
+    assert [u.buffered for u in updates] == [True, True, True, False]
+    assert all(u.touched_leaves > 0 for u in updates)  # each insert stored its own scan
+    assert "learning" in updates[3].stages
+    assert m.buffered_scans == 0
+    assert m.store.pending  # fitted at the first read, with the learnt hyperparameters
+    assert m.settle() == len(m.store)

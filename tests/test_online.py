@@ -512,14 +512,19 @@ def test_leaf_depth_beyond_tree_depth_is_refused() -> None:
 
 
 # ---------------------------------------------------------------- hyperparameters
-def test_hyperparameters_learnt_from_first_scans_then_fixed() -> None:
+@pytest.mark.parametrize("defer", [True, False])
+def test_hyperparameters_learnt_from_first_scans_then_fixed(defer: bool) -> None:
     scans = [room_scan((x, 0.3 * x), n=120) for x in np.linspace(-2, 2, 5)]
-    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=3))
+    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=3, defer_fit=defer))
     m = OnlineMap(config)
     u1, u2 = m.insert_scan(scans[0]), m.insert_scan(scans[1])
     assert u1.buffered
     assert u2.buffered
-    assert len(m.store) == 0
+    if defer:  # the buffered scans' evidence is stored, its fit waits for the hyperparameters
+        assert len(m.store) == len(m.store.pending) > 0
+        assert m.settle() == 0
+    else:
+        assert len(m.store) == 0
     u3 = m.insert_scan(scans[2])
     assert not u3.buffered
     assert "learning" in u3.stages
@@ -541,8 +546,8 @@ def test_queries_answer_provisionally_and_never_learn() -> None:
     assert m.hyperparameters is None
     assert m.provisional
     assert m.occupancy([[4.0, 0.0]])[0] > 0.5  # a provisional fit of the buffered scans
-    assert m.hyperparameters is None  # ... thrown away: nothing learnt, nothing stored
-    assert len(m.store) == 0
+    assert m.hyperparameters is None  # ... thrown away: nothing learnt, nothing fitted
+    assert len(m.store) == len(m.store.pending)  # evidence only, waiting to be fitted
     assert m.buffered_scans == 2
     # what flush() would make, which is the one explicit way to learn early
     flushed = OnlineMap(config)

@@ -28,6 +28,7 @@ those k scans and the config only: queries, :meth:`~OnlineMap.save`,
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import threading
@@ -275,7 +276,8 @@ class OnlineMap(MapReads):
             f = self._file
             journal = f.scans() if f is not None else iter(self._bootstrap.scans)
             own = None if f is None else f.path
-            leaves = self.store.items()
+            # while learning, the file keeps the buffered scans and no leaves
+            leaves = self.store.items() if self.hyperparameters is not None else iter(())
             hp, n = self.hyperparameters, self.n_scans
             write_map(path, self.config, hp, n, leaves, journal, overwrite=overwrite, own=own)
 
@@ -377,7 +379,9 @@ class OnlineMap(MapReads):
         """True while scans are buffered to learn hyperparameters.
 
         Reads then answer from a provisional fit of the buffered scans that is thrown
-        away; the map itself holds no leaves until the hyperparameters are learnt.
+        away. The map itself holds no leaves until the hyperparameters are learnt, or,
+        when it defers its fits (:attr:`defers_fit`), the buffered scans' evidence in
+        leaves that wait for them.
         """
         return self.hyperparameters is None and len(self._bootstrap) > 0
 
@@ -413,6 +417,10 @@ class OnlineMap(MapReads):
         index = self.n_scans + 1
         if self.hyperparameters is not None:
             return self._step([scan], [(index, scan)], t0)
+        if self.defers_fit:  # evidence needs no hyperparameters: stored now, fitted later
+            ready = self._bootstrap.add(scan)
+            step = self._step([scan], [(index, scan)], t0, buffered=True)
+            return self._learn(step) if ready else step
         if self._bootstrap.add(scan):  # enough scans to learn on
             update = self._learn_and_step([(index, scan)], t0)
             if update is not None:
@@ -441,7 +449,30 @@ class OnlineMap(MapReads):
         """
         if not len(self._bootstrap):
             return None
+        if self.defers_fit:  # the buffered scans are in the store already
+            update = self._learn(self._buffered_update(time.perf_counter()))
+            return None if update.buffered else update
         return self._learn_and_step([], time.perf_counter())
+
+    def _learn(self, update: ScanUpdate) -> ScanUpdate:
+        """Learn on the buffer of a map whose store holds the buffered scans' evidence.
+
+        ``update`` is the step's record; it comes back unchanged while the buffer holds
+        no training data yet, else with the learning's seconds and ``buffered`` false.
+        The pending leaves are fitted with the learnt hyperparameters at the next read.
+        """
+        if not self._bootstrap.can_learn():
+            return update
+        t = time.perf_counter()
+        hp = self._bootstrap.learn()
+        learning = time.perf_counter() - t
+        logger.info("learnt hyperparameters on %d scans: %s", len(self._bootstrap), hp)
+        self.hyperparameters = hp
+        self._bootstrap.take()
+        stages = {**update.stages, "learning": learning}
+        return dataclasses.replace(
+            update, buffered=False, stages=stages, seconds=update.seconds + learning
+        )
 
     def _learn_and_step(self, journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate | None:
         """Learn on the buffer and insert it; ``None`` (still buffering) without data."""
@@ -459,11 +490,19 @@ class OnlineMap(MapReads):
         update.stages["learning"] = learning
         return update
 
-    def _step(self, scans: list[Scan], journal: list[tuple[int, Scan]], t0: float) -> ScanUpdate:
+    def _step(
+        self,
+        scans: list[Scan],
+        journal: list[tuple[int, Scan]],
+        t0: float,
+        *,
+        buffered: bool = False,
+    ) -> ScanUpdate:
         """Scans → evidence per leaf → refit the leaves whose GP inputs changed → write.
 
         With :attr:`defers_fit` the changed leaves are stored pending (their new
         evidence, their old values) and fitted when the map is next read.
+        ``buffered``: the scans are also buffered to learn on (the record says so).
         """
         index = journal[-1][0] if journal else self.n_scans
         stages: dict[str, float] = {}
@@ -500,6 +539,7 @@ class OnlineMap(MapReads):
             fits,
             new_items=evidence.new_items,
             refit=len(fitted),
+            buffered=buffered,
         )
         self.sink.on_update(update, self._change(fitted))
         return update
@@ -524,7 +564,8 @@ class OnlineMap(MapReads):
 
         Every read does this first, so calling it only chooses when the cost is paid
         (before a time-critical query, say). The map's values are those of fitting at
-        every insert. Returns the number of leaves fitted.
+        every insert. Returns the number of leaves fitted: none while the map still
+        learns its hyperparameters (their evidence waits for them).
         """
         with self._lock:
             self._check("settle")
@@ -533,7 +574,7 @@ class OnlineMap(MapReads):
     def _settle(self) -> int:
         """Fit the pending leaves, all tiles of each, and store them (no scan stamp)."""
         keys = self.store.pending
-        if not keys:
+        if not keys or self.hyperparameters is None:  # nothing to fit with while learning
             return 0
         with collector_paused():
             leaves = [leaf for k in keys if (leaf := self.store.get(k)) is not None]
@@ -689,8 +730,10 @@ class OnlineMap(MapReads):
         stats: dict[str, float] = {"learning": 0.0}
         scan_list = new_scans
         if self.hyperparameters is None and fitter is None:  # learn on the first scans
-            scan_list = self._bootstrap.take() + new_scans
-            self._learn_first(scan_list, stats)
+            buffered = self._bootstrap.take()
+            self._learn_first(buffered + new_scans, stats)
+            if not self.defers_fit:  # a deferring map holds their evidence already
+                scan_list = buffered + new_scans
         # 1. every scan's evidence, chunk by chunk in time order
         with self._workers.one_blas_thread():
             gathered, refit, new_items = gather_batch(
@@ -792,7 +835,9 @@ class OnlineMap(MapReads):
         self.hyperparameters = hp
         with self._all_or_nothing("set_hyperparameters"):
             if len(self._bootstrap):
-                self._step(self._bootstrap.take(), [], time.perf_counter())
+                buffered = self._bootstrap.take()
+                if not self.defers_fit:  # a deferring map holds their evidence already
+                    self._step(buffered, [], time.perf_counter())
             keys = list(self.store)
             for lo in range(0, len(keys), 256):  # one batch of leaves per iteration
                 batch = [(k, leaf) for k in keys[lo : lo + 256] if (leaf := self.store.peek(k))]
@@ -895,6 +940,7 @@ class OnlineMap(MapReads):
         new_items: int,
         removed: int = 0,
         refit: int | None = None,
+        buffered: bool = False,
     ) -> ScanUpdate:
         """The record of a step that refitted ``fits``.
 
@@ -913,6 +959,7 @@ class OnlineMap(MapReads):
             memory_bytes=self.memory_bytes(),
             repaired=self._count_repairs(fits),
             removed_leaves=removed,
+            buffered=buffered,
         )
 
     def _buffered_update(self, t0: float) -> ScanUpdate:

@@ -142,6 +142,7 @@ class MapReads:
     config: MapConfig
     grid: LeafGrid
     store: LeafStore
+    hyperparameters: Hyperparameters | None
 
     def _reading(self) -> AbstractContextManager[ReadableMap]:
         raise NotImplementedError
@@ -211,11 +212,13 @@ class MapReads:
     def leaves(self) -> Iterator[tuple[int, Leaf]]:
         """``(packed leaf key, leaf)`` for every leaf, in key order.
 
-        The map is checked when the iterator is made; a writer changing the map while
-        it is consumed may be seen part-way.
+        None while the map learns its hyperparameters (a map that defers its fits
+        holds the buffered scans' evidence then, in leaves not fitted yet). The map is
+        checked when the iterator is made; a writer changing the map while it is
+        consumed may be seen part-way.
         """
         with self._reading():
-            return self.store.items()
+            return self.store.items() if self.hyperparameters is not None else iter(())
 
     def voxels(self) -> tuple[FloatArray, FloatArray]:
         """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
