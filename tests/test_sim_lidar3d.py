@@ -214,7 +214,7 @@ def test_tool_reports_learning_and_flush_rows(bench: ModuleType) -> None:
         eval_s={"octolgp": 0.1},
     )
     text = "\n".join(bench.summary_table(run))
-    assert "flush() after the last scan s (learn 1.50 s, then fit 3 buffered scans" in text
+    assert "flush() after the last scan s (learn 1.50 s, then 3 buffered scans: 30 leaves" in text
     assert "| 4.00 |" in text
     assert "hyperparameters known (0 scans" in text
     assert "| total s, every insert (+ flush, + settle) | 4.01 | 0.30 | 13.4× |" in text

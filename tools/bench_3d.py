@@ -661,16 +661,17 @@ def summary_table(run: PairRun, results: Sequence[SplitResult] | None = None) ->
         if "learning" in r.kind:
             i = r.kind.index("learning")
             rows.append(
-                f"| learning scan {i + 1}{where} s (learn {_fmt(r.learn_s, 2)} s, then fit {i + 1} "
-                f"scans, {r.refit[i]} leaves) | {_fmt(r.octolgp_s[i], 2)} | "
+                f"| learning scan {i + 1}{where} s (learn {_fmt(r.learn_s, 2)} s; the step "
+                f"changed {r.refit[i]} leaves) | {_fmt(r.octolgp_s[i], 2)} | "
                 f"{_fmt(r.octomap_s[i]) if has_octo else '–'} | – | "
                 f"{_fmt(r.dufomap_s[i], 4) if has_duf else '–'} | – |"
             )
         if r.flush_s is not None:
             n_buf = sum(k == "buffered" for k in r.kind)
             rows.append(
-                f"| flush() after the last scan{where} s (learn {_fmt(r.learn_s, 2)} s, then fit "
-                f"{n_buf} buffered scans, {r.flush_refit} leaves) | {_fmt(r.flush_s, 2)} "
+                f"| flush() after the last scan{where} s (learn {_fmt(r.learn_s, 2)} s, then "
+                f"{n_buf} buffered scans: {r.flush_refit} leaves changed, none if stored as they "
+                f"came) | {_fmt(r.flush_s, 2)} "
                 "| – | – | – | – |"
             )
     settled = [r.settle_s for r in runs if r.settle_s == r.settle_s]
