@@ -463,11 +463,7 @@ class OnlineMap(MapReads):
         """
         if not self._bootstrap.can_learn():
             return update
-        t = time.perf_counter()
-        hp = self._bootstrap.learn()
-        learning = time.perf_counter() - t
-        logger.info("learnt hyperparameters on %d scans: %s", len(self._bootstrap), hp)
-        self.hyperparameters = hp
+        learning = self._learn_on_buffer()
         self._bootstrap.take()
         stages = {**update.stages, "learning": learning}
         return dataclasses.replace(
@@ -481,14 +477,18 @@ class OnlineMap(MapReads):
             if journal:
                 self._journal(journal)
             return None
-        t1 = time.perf_counter()
-        hp = self._bootstrap.learn()
-        learning = time.perf_counter() - t1
-        logger.info("learnt hyperparameters on %d scans: %s", len(self._bootstrap), hp)
-        self.hyperparameters = hp
+        learning = self._learn_on_buffer()
         update = self._step(self._bootstrap.take(), journal, t0)
         update.stages["learning"] = learning
         return update
+
+    def _learn_on_buffer(self) -> float:
+        """Learn the hyperparameters on the buffered scans and keep them; the seconds taken."""
+        t = time.perf_counter()
+        hp = self._bootstrap.learn()
+        logger.info("learnt hyperparameters on %d scans: %s", len(self._bootstrap), hp)
+        self.hyperparameters = hp
+        return time.perf_counter() - t
 
     def _step(
         self,
