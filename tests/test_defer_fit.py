@@ -11,6 +11,7 @@ import pytest
 from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, Scan, load_scans
 from octolgp.engines import engine_for
 from octolgp.engines.base import evidence_arrays
+from octolgp.mapping.query import leaves_read
 from octolgp.mapping.update import ScanUpdate
 from octolgp.persist.mapfile import encode_leaf
 from octolgp.sim.lidar3d import simulate_lidar_room
@@ -71,6 +72,7 @@ def test_a_deferred_map_reads_as_the_map_fitted_at_every_insert(
         if i % 3 == 1:  # reads now and then: each sees every scan so far
             assert lazy.store.pending
             np.testing.assert_array_equal(lazy.occupancy(probe), eager.occupancy(probe))
+            lazy.settle()
             assert not lazy.store.pending
     # the values are bit for bit those of fitting at every insert: a fit of a leaf's
     # tiles from its evidence is deterministic, whichever scan last changed it
@@ -188,3 +190,36 @@ def test_a_learning_insert_stores_one_scan_and_learns(intel: list[Scan]) -> None
     assert m.buffered_scans == 0
     assert m.store.pending  # fitted at the first read, with the learnt hyperparameters
     assert m.settle() == len(m.store)
+
+
+@pytest.mark.parametrize("interpolate", [True, False])
+def test_a_small_query_fits_only_the_leaves_it_reads(interpolate: bool, room: list[Scan]) -> None:
+    config = MapConfig(dim=3, resolution=0.2, hyperparameters=HP3)
+    lazy, eager = OnlineMap(config), OnlineMap(with_defer(config, False))
+    rng = np.random.default_rng(7)
+    for scan in room[:3]:
+        lazy.insert_scan(scan)
+        eager.insert_scan(scan)
+        before = len(lazy.store.pending)
+        # a planner's window: points around one return, on voxel centres, borders and corners
+        centre = scan.points[rng.integers(len(scan))]
+        window = centre + rng.uniform(-0.5, 0.5, (200, 3))
+        window[:8] = np.round(window[:8] / 0.2) * 0.2  # voxel borders
+        for read in ("occupancy", "latent"):
+            a = getattr(lazy, read)(window, interpolate=interpolate)
+            b = getattr(eager, read)(window, interpolate=interpolate)
+            np.testing.assert_array_equal(a, b)
+        assert 0 < len(lazy.store.pending) < before  # the far leaves still wait
+    assert leaf_bytes(lazy) == leaf_bytes(eager)  # a whole read fits the rest
+
+
+def test_leaves_read_cover_the_interpolation_corners() -> None:
+    grid = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP2)).grid
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-3, 3, (500, 2))
+    keys = leaves_read(grid, X)
+    res = grid.resolution
+    for dx in (-res, 0.0, res):  # every voxel within one voxel of a point
+        for dy in (-res, 0.0, res):
+            near = grid.pack(grid.leaf_of(X + np.array([dx, dy])))
+            assert set(np.unique(near).tolist()) <= keys

@@ -56,11 +56,11 @@ from octolgp.mapping.correction import (
 )
 from octolgp.mapping.evidence import LeafFitter, batch_bounds, check_scan, gather_batch
 from octolgp.mapping.grid import LeafGrid
-from octolgp.mapping.query import MapReads
+from octolgp.mapping.query import MapReads, leaves_read
 from octolgp.mapping.store import Leaf, LeafStore, MapStorage
 from octolgp.mapping.update import ScanUpdate
 from octolgp.mapping.workers import Workers, collector_paused
-from octolgp.scan import Scan
+from octolgp.scan import FloatArray, Scan
 from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
 
 __all__ = ["OnlineMap", "ScanUpdate"]
@@ -74,6 +74,10 @@ CHUNK_BEAMS = 60_000
 FIT_BATCH_ITEMS = 160_000
 """Training items (summed over leaves) fitted per batch by :meth:`OnlineMap.insert_batch`
 in this process; each batch is stored (and written, uncommitted) before the next."""
+
+LOCAL_QUERY_POINTS = 65_536
+"""A query at up to this many points fits only the pending leaves it reads; a larger
+one fits them all (working out which it reads would cost about as much)."""
 
 FIT_CHUNK = 2048
 """Leaves the engine fits per call: a step's or a settle's leaves are fitted in chunks
@@ -308,17 +312,26 @@ class OnlineMap(MapReads):
             )
 
     @contextmanager
-    def _reading(self) -> Iterator[OnlineMap]:
+    def _reading(self, points: FloatArray | None = None) -> Iterator[OnlineMap]:
         """The map one read comes from, held alone (the map's lock) for that read.
 
         This map, or a provisional fit of the buffered scans while it learns its
         hyperparameters. Every read of :class:`~octolgp.mapping.query.MapReads` goes
         through it, after the leaves whose fits inserts deferred are fitted
-        (:meth:`settle`); a closed or broken map refuses.
+        (:meth:`settle`): for a query at up to :data:`LOCAL_QUERY_POINTS` ``points``,
+        only those it reads (a leaf's fit depends on its own evidence only); a closed
+        or broken map refuses.
         """
         with self._lock:
             self._check("read")
-            self._settle()
+            local = points is not None and points.shape[0] <= LOCAL_QUERY_POINTS
+            pending = self.store.pending
+            if local and pending:
+                assert points is not None
+                read = leaves_read(self.grid, points)
+                self._settle([k for k in pending if k in read])
+            else:
+                self._settle()
             yield self if not self.provisional else self._bootstrap.provisional(_provisional_map)
 
     @contextmanager
@@ -571,9 +584,9 @@ class OnlineMap(MapReads):
             self._check("settle")
             return self._settle()
 
-    def _settle(self) -> int:
-        """Fit the pending leaves, all tiles of each, and store them (no scan stamp)."""
-        keys = self.store.pending
+    def _settle(self, keys: list[int] | None = None) -> int:
+        """Fit pending leaves (``keys``, or all), every tile of each; store them unstamped."""
+        keys = self.store.pending if keys is None else keys
         if not keys or self.hyperparameters is None:  # nothing to fit with while learning
             return 0
         with collector_paused():

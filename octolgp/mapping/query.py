@@ -10,6 +10,7 @@ resident, so a query does not change which leaves stay in RAM either.
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from pathlib import Path
@@ -125,6 +126,21 @@ class ReadableMap(Protocol):
     hyperparameters: Hyperparameters | None
 
 
+def leaves_read(grid: LeafGrid, X: FloatArray) -> set[int]:
+    """Packed keys of every leaf a query at ``X`` may read (interpolated or not).
+
+    The ``2**d`` voxel centres around a point lie within one voxel of it, so their
+    leaves are those of the points moved by up to a voxel along each axis.
+    """
+    res = grid.resolution
+    low, high = grid.leaf_of(X - res), grid.leaf_of(X + res)
+    keys: set[int] = set()
+    for corner in itertools.product((0, 1), repeat=X.shape[1]):  # 4 or 8 corners
+        index = np.where(np.array(corner, dtype=bool), high, low)
+        keys.update(np.unique(grid.pack(index)).tolist())
+    return keys
+
+
 def interpolate_latent(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
     """Multilinear latent mean and variance of map ``m`` at points (see :func:`interpolate`)."""
     prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
@@ -144,7 +160,8 @@ class MapReads:
     store: LeafStore
     hyperparameters: Hyperparameters | None
 
-    def _reading(self) -> AbstractContextManager[ReadableMap]:
+    def _reading(self, points: FloatArray | None = None) -> AbstractContextManager[ReadableMap]:
+        """The map one read comes from; ``points``: the read is a query at these points."""
         raise NotImplementedError
 
     def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
@@ -175,7 +192,7 @@ class MapReads:
             On a bad shape, a non-finite value or a point outside the addressable range.
         """
         X = query_points(points, self.config)
-        with self._reading() as m:
+        with self._reading(X) as m:
             hp = m.hyperparameters
             if not interpolate or hp is None:
                 (prob,) = lookup(m.store, m.grid, X, ("prob",))
@@ -197,7 +214,7 @@ class MapReads:
             (``σf² = 1`` before hyperparameters exist).
         """
         X = query_points(points, self.config)
-        with self._reading() as m:
+        with self._reading(X) as m:
             prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
             if not interpolate:
                 mean, var = lookup(m.store, m.grid, X, ("mean", "var"))
