@@ -280,8 +280,7 @@ class OnlineMap(MapReads):
             f = self._file
             journal = f.scans() if f is not None else iter(self._bootstrap.scans)
             own = None if f is None else f.path
-            # while learning, the file keeps the buffered scans and no leaves
-            leaves = self.store.items() if self.hyperparameters is not None else iter(())
+            leaves = self.leaves()  # none while learning: the file keeps the buffered scans
             hp, n = self.hyperparameters, self.n_scans
             write_map(path, self.config, hp, n, leaves, journal, overwrite=overwrite, own=own)
 
@@ -324,14 +323,11 @@ class OnlineMap(MapReads):
         """
         with self._lock:
             self._check("read")
-            local = points is not None and points.shape[0] <= LOCAL_QUERY_POINTS
-            pending = self.store.pending
-            if local and pending:
-                assert points is not None
-                read = leaves_read(self.grid, points)
-                self._settle([k for k in pending if k in read])
-            else:
-                self._settle()
+            if self.store.n_pending and self.hyperparameters is not None:
+                if points is not None and points.shape[0] <= LOCAL_QUERY_POINTS:
+                    self._settle(self.store.pending_among(leaves_read(self.grid, points)))
+                else:
+                    self._settle()
             yield self if not self.provisional else self._bootstrap.provisional(_provisional_map)
 
     @contextmanager

@@ -337,6 +337,15 @@ class LeafStore:
         return sorted(self._pending)
 
     @property
+    def n_pending(self) -> int:
+        """How many leaves wait for a fit (no list is made)."""
+        return len(self._pending)
+
+    def pending_among(self, keys: set[int]) -> list[int]:
+        """The keys of ``keys`` whose leaves wait for a fit, ascending."""
+        return sorted(self._pending.intersection(keys))
+
+    @property
     def dirty(self) -> list[int]:
         """Keys of leaves changed in RAM and not yet in the file."""
         return sorted(self._dirty)
