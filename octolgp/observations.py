@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 
 from octolgp.config import MapConfig
 from octolgp.geometry import ray_kernel
-from octolgp.geometry.keys import KEY_BITS, pack_keys, unpack_keys
+from octolgp.geometry.keys import KEY_BITS, pack_keys, return_steps, step_points, unpack_keys
 from octolgp.scan import Scan
 from octolgp.training import IntArray, check_scans, split_beams, stack_beams
 
@@ -458,8 +458,11 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     origins, ends, max_range = stack_beams(scan_list)
     scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
     beams = split_beams(origins, ends, max_range, config.free_margin)
-    hit_points = ends[beams.is_hit]
-    hit_packed = pack_keys(_voxel_keys(hit_points, res, depth))
+    hit_keys = _voxel_keys(ends[beams.is_hit], res, depth)
+    # returns at the precision a map file keeps them (a map equals the map read back)
+    steps = return_steps(ends[beams.is_hit], hit_keys, res, depth)
+    hit_points = step_points(steps, hit_keys, res, depth)
+    hit_packed = pack_keys(hit_keys)
     # one (scan, voxel) code per return; the first return of each, in beam order
     all_codes = _scan_codes(hit_packed, scan[beams.is_hit], dim)
     order = np.argsort(all_codes, kind="stable")

@@ -11,9 +11,10 @@ import pytest
 from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, Scan, load_scans
 from octolgp.engines import engine_for
 from octolgp.engines.base import evidence_arrays
+from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import leaves_read
 from octolgp.mapping.update import ScanUpdate
-from octolgp.persist.mapfile import encode_leaf
+from octolgp.persist.mapfile import decode_leaf, encode_leaf
 from octolgp.sim.lidar3d import simulate_lidar_room
 from octolgp.sinks.base import MapChange
 
@@ -131,7 +132,9 @@ def test_maps_that_record_or_show_every_step_fit_at_once(tmp_path: Path, room: l
     assert all(v.size and np.isfinite(v).all() for v in sink.values)
 
 
-def test_a_pending_leaf_is_never_written_to_a_file(room: list[Scan]) -> None:
+def test_a_pending_leaf_is_written_as_its_evidence_and_reads_back_pending(room: list[Scan]) -> None:
+    """Lattice records keep no values, so a pending leaf's record is complete; an engine
+    whose records keep the values refuses one (they would not be its evidence's)."""
     config = MapConfig(dim=3, resolution=0.2, hyperparameters=HP3)
     m = OnlineMap(config)
     m.insert_scan(room[0])
@@ -139,8 +142,20 @@ def test_a_pending_leaf_is_never_written_to_a_file(room: list[Scan]) -> None:
     leaf = m.store.get(key)
     assert leaf is not None
     assert leaf.pending
+    engine, grid = engine_for(m.config), LeafGrid.from_config(m.config)
+    back = decode_leaf(encode_leaf(leaf, engine), engine, grid)
+    assert back.pending
+    assert back.prob.size == 0
+    assert all(
+        np.array_equal(a, b)
+        for a, b in zip(evidence_arrays(back.evidence), evidence_arrays(leaf.evidence), strict=True)
+    )
+    exact = dataclasses.replace(config, online=dataclasses.replace(config.online, engine="exact"))
+    e = OnlineMap(exact)
+    e.insert_scan(room[0])
+    _, fitted = next(iter(e.leaves()))
     with pytest.raises(ValueError, match="pending"):
-        encode_leaf(leaf, engine_for(m.config))
+        encode_leaf(fitted.evolve(pending=True), engine_for(e.config))
 
 
 def test_learning_inserts_defer_too_and_reads_answer_in_between(intel: list[Scan]) -> None:

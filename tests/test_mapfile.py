@@ -65,12 +65,21 @@ def test_leaf_encoding_round_trips_and_rejects_corruption(engine: str) -> None:
     m = OnlineMap(config)
     m.insert_scans(_scans()[:2])
     codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)
-    for _, leaf in m.leaves():
+    for _key, leaf in m.leaves():
         blob = encode_leaf(leaf, codec)
         back = decode_leaf(blob, codec, grid)
         assert encode_leaf(back, codec) == blob
         assert evidence_bytes(back) == evidence_bytes(leaf)
-        assert back.pruned == leaf.pruned
+        assert np.array_equal(back.index, leaf.index)
+        assert (back.refits, back.touched) == (leaf.refits, leaf.touched)
+        if engine == "lattice":  # values are refitted from the evidence: not stored
+            assert back.pending
+            assert back.prob.size == 0
+        else:
+            assert back.pruned == leaf.pruned
+            assert not back.pending
+            assert np.array_equal(back.prob, leaf.prob)
+            assert np.array_equal(back.var, leaf.var)
         with pytest.raises(OctolgpError, match=r"bytes|header|truncated|checksum"):
             decode_leaf(blob[:-3], codec, grid)
         with pytest.raises(OctolgpError, match="header"):
@@ -284,7 +293,7 @@ def test_old_leaf_records_still_read(engine: str, version: int) -> None:
     m = OnlineMap(config)
     m.insert_scans(_scans()[:2])
     codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)
-    for _, leaf in m.leaves():
+    for _key, leaf in m.leaves():
         back = decode_leaf(_old_record(leaf, version), codec, grid)
         assert encode_leaf(back, codec) == encode_leaf(leaf, codec)
 

@@ -26,6 +26,7 @@ from octolgp.errors import OctolgpError
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf, LeafEvidence
 from octolgp.scan import FloatArray, Scan
+from octolgp.training import IntArray
 
 PRUNE_FREE = 0.1192
 """A leaf all of whose voxels read below this P(occupied) is pruned to one value
@@ -130,8 +131,20 @@ class LeafEngine(Protocol):
         """The evidence of a leaf that has seen nothing."""
         ...
 
+    values_from_evidence: bool
+    """Whether a leaf's voxel values are a cheap, deterministic function of its evidence
+    (the map file then keeps the evidence only and a leaf read back is fitted again)."""
+
+    def record(self, evidence: LeafEvidence, index: IntArray) -> bytes:
+        """The evidence of the leaf ``index`` as the map file keeps it (:meth:`from_record`)."""
+        ...
+
+    def from_record(self, blob: bytes, index: IntArray) -> LeafEvidence:
+        """Inverse of :meth:`record`; raises ``OctolgpError`` on a corrupt blob."""
+        ...
+
     def encode(self, evidence: LeafEvidence) -> bytes:
-        """The evidence as bytes for the map file (:meth:`decode` reads it back)."""
+        """The evidence in the full-precision form of map files up to version 4."""
         ...
 
     def decode(self, blob: bytes, dim: int) -> LeafEvidence:

@@ -334,6 +334,16 @@ class ExactEngine:
         """No items."""
         return ExactEvidence.empty(dim)
 
+    values_from_evidence = False
+
+    def record(self, evidence: object, index: IntArray) -> bytes:
+        """The evidence as the map file keeps it: :meth:`encode` (the leaf's values too)."""
+        return self.encode(evidence)
+
+    def from_record(self, blob: bytes, index: IntArray) -> ExactEvidence:
+        """Inverse of :meth:`record`."""
+        return self.decode(blob, int(np.asarray(index).size))
+
     def encode(self, evidence: object) -> bytes:
         """Item counts, then hits, hit keys, piece starts, ends and keys (little-endian)."""
         if not isinstance(evidence, ExactEvidence):

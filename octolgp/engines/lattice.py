@@ -38,6 +38,7 @@ from octolgp.engines.base import (
     read_arrays,
     stage,
 )
+from octolgp.engines.lattice_record import decode_lattice, encode_lattice
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import KEY_BITS, pack_keys, unpack_keys
 from octolgp.gp.lattice import (
@@ -105,6 +106,13 @@ def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
     if not isinstance(ev, LatticeEvidence):
         raise TypeError(f"leaf holds {type(ev).__name__}, not the lattice engine's evidence")
     return ev
+
+
+def lattice_evidence_of(evidence: object) -> LatticeEvidence:
+    """``evidence`` as the lattice engine's (raises ``TypeError`` on another engine's)."""
+    if not isinstance(evidence, LatticeEvidence):
+        raise TypeError(f"expected LatticeEvidence, got {type(evidence).__name__}")
+    return evidence
 
 
 def evidence_of(leaves: list[Leaf]) -> list[LatticeEvidence]:
@@ -845,11 +853,20 @@ class LatticeEngine:
         """Nothing seen."""
         return LatticeEvidence.empty(dim)
 
+    values_from_evidence = True
+
+    def record(self, evidence: object, index: IntArray) -> bytes:
+        """The compact record (:func:`octolgp.engines.lattice_record.encode_lattice`)."""
+        ev = lattice_evidence_of(evidence)
+        return encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, self.grid)
+
+    def from_record(self, blob: bytes, index: IntArray) -> LatticeEvidence:
+        """Inverse of :meth:`record`."""
+        return LatticeEvidence(*decode_lattice(blob, index, self.grid))
+
     def encode(self, evidence: object) -> bytes:
         """Sizes, then the counts (uint8), the kept returns' keys and positions."""
-        if not isinstance(evidence, LatticeEvidence):
-            raise TypeError(f"expected LatticeEvidence, got {type(evidence).__name__}")
-        ev = evidence
+        ev = lattice_evidence_of(evidence)
         head = _SIZES.pack(ev.counts.shape[1], ev.hit_keys.size)
         parts = (
             np.ascontiguousarray(ev.counts, dtype=np.uint8),

@@ -182,6 +182,36 @@ def key_to_coord(keys: ArrayLike, resolution: float, tree_depth: int = 16) -> Fl
     return (k - (1 << (tree_depth - 1)) + 0.5).astype(np.float64) * float(resolution)
 
 
+RETURN_STEPS = 1 << 16
+"""Steps per voxel edge at which a kept return's position is stored: a return sits at
+the centre of one of ``RETURN_STEPS**d`` cells of its voxel (0.003 mm at 0.2 m)."""
+
+
+def return_steps(
+    points: FloatArray, keys: IntArray, resolution: float, tree_depth: int
+) -> NDArray[np.uint16]:
+    """Each point's cell of :data:`RETURN_STEPS` per axis inside its voxel, (n, d) uint16.
+
+    ``keys`` are the points' voxel keys; a point on a voxel's far face (rounding) goes
+    to the last cell.
+    """
+    u = points / resolution - (keys - (1 << (tree_depth - 1)))
+    steps = np.clip(np.floor(u * RETURN_STEPS), 0, RETURN_STEPS - 1)
+    return steps.astype(np.uint16)
+
+
+def step_points(steps: ArrayLike, keys: IntArray, resolution: float, tree_depth: int) -> FloatArray:
+    """Positions of :func:`return_steps` cells: each cell's centre, metres, (n, d).
+
+    ``step_points(return_steps(p, k, ...), k, ...)`` moves each point by at most half a
+    step per axis and is its own fixed point, so a kept return stored as its cell reads
+    back bit for bit.
+    """
+    cell = (np.asarray(steps, dtype=np.float64) + 0.5) / RETURN_STEPS
+    out: FloatArray = ((keys - (1 << (tree_depth - 1))) + cell) * float(resolution)
+    return out
+
+
 def _as_keys(keys: ArrayLike, name: str, limit: int = 1 << KEY_BITS) -> IntArray:
     """Validate an ``(n, d)`` integer key array with entries in ``[0, limit)``."""
     k = np.asarray(keys)

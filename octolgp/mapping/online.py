@@ -57,7 +57,7 @@ from octolgp.mapping.correction import (
 from octolgp.mapping.evidence import LeafFitter, batch_bounds, check_scan, gather_batch
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads, leaves_read
-from octolgp.mapping.store import Leaf, LeafStore, MapStorage
+from octolgp.mapping.store import FittingBacking, Leaf, LeafStore, MapStorage
 from octolgp.mapping.update import ScanUpdate
 from octolgp.mapping.workers import Workers, collector_paused
 from octolgp.scan import FloatArray, Scan
@@ -210,16 +210,34 @@ class OnlineMap(MapReads):
                 if path is not None
                 else MapFile.spill(self.config)
             )
-            self.store.attach(self._file, [])
+            self.store.attach(FittingBacking(self._file, self._fitted), [])
 
     def _resume(self, storage: MapStorage) -> None:
         """Take over the state recorded in an opened map file."""
         header = storage.header
         self.hyperparameters = header.hyperparameters
         self.n_scans = header.n_scans
-        self.store.attach(storage, header.leaf_keys)
+        self.store.attach(FittingBacking(storage, self._fitted), header.leaf_keys)
         if self.hyperparameters is None and not header.leaf_keys:
             self._bootstrap = Bootstrap(self.config, storage.scans())  # still collecting
+
+    def _fitted(self, leaves: list[Leaf]) -> list[Leaf]:
+        """Leaves read from the map file without their voxel values, with them.
+
+        Each fit equals the one the leaf had when written (a fit depends on the leaf's
+        evidence and the map's hyperparameters only); refit counts and stamps are kept.
+        """
+        if not leaves:
+            return []
+        if self.hyperparameters is None:
+            raise OctolgpError(
+                f"map file {str(self.path)!r} holds leaves but no hyperparameters to fit them"
+            )
+        fits = self._fit(leaves)
+        return [
+            f.leaf.evolve(refits=leaf.refits, touched=leaf.touched)
+            for leaf, f in zip(leaves, fits, strict=True)
+        ]
 
     # ------------------------------------------------------------------ life cycle
     @classmethod

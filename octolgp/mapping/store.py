@@ -13,7 +13,7 @@ around it is a pure function.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -138,12 +138,45 @@ _LEAF_FIELDS = frozenset(
 )
 
 
+READ_BATCH = 512
+"""Evicted leaves read (and fitted, where stored without values) together when iterating."""
+
+
 class LeafBacking(Protocol):
     """Where evicted leaves live: the map file (:class:`octolgp.persist.mapfile.MapFile`)."""
 
     def read_leaf(self, key: int) -> Leaf:
         """The persisted leaf ``key``."""
         ...
+
+    def read_leaves(self, keys: list[int]) -> list[Leaf]:
+        """The persisted leaves ``keys``, in order."""
+        ...
+
+
+class FittingBacking:
+    """A backing whose leaves come back with their voxel values.
+
+    A map file keeps only the evidence of an engine whose values are a function of it
+    (:attr:`octolgp.engines.base.LeafEngine.values_from_evidence`); such a leaf reads
+    back ``pending`` and ``fit`` gives it its values as it is read.
+    """
+
+    def __init__(self, backing: LeafBacking, fit: Callable[[list[Leaf]], list[Leaf]]) -> None:
+        self._backing = backing
+        self._fit = fit
+
+    def read_leaf(self, key: int) -> Leaf:
+        """The persisted leaf ``key``, fitted if it was stored without its values."""
+        return self.read_leaves([key])[0]
+
+    def read_leaves(self, keys: list[int]) -> list[Leaf]:
+        """The persisted leaves ``keys``, in order; those stored without values fitted at once."""
+        leaves = self._backing.read_leaves(keys)
+        bare = [j for j, leaf in enumerate(leaves) if leaf.pending]
+        for j, leaf in zip(bare, self._fit([leaves[j] for j in bare]), strict=True):
+            leaves[j] = leaf
+        return leaves
 
 
 @dataclass(frozen=True)
@@ -370,11 +403,20 @@ class LeafStore:
         return evicted
 
     def items(self) -> Iterator[tuple[int, Leaf]]:
-        """``(key, leaf)`` in ascending key order; evicted leaves are read, not kept."""
-        for key in sorted(self._keys):
-            leaf = self.peek(key)
-            if leaf is not None:
-                yield key, leaf
+        """``(key, leaf)`` in ascending key order; evicted leaves are read, not kept.
+
+        Evicted leaves are read in batches of :data:`READ_BATCH`.
+        """
+        keys = sorted(self._keys)
+        for lo in range(0, len(keys), READ_BATCH):  # one batch of keys per iteration
+            batch = keys[lo : lo + READ_BATCH]
+            found = {k: leaf for k in batch if (leaf := self._leaves.get(k)) is not None}
+            missing = [k for k in batch if k not in found]
+            if missing and self.backing is not None:
+                found.update(zip(missing, self.backing.read_leaves(missing), strict=True))
+            for key in batch:  # one iteration per leaf
+                if key in found:
+                    yield key, found[key]
 
     @property
     def resident(self) -> int:

@@ -61,65 +61,82 @@ from octolgp.engines.base import LeafEngine, read_arrays
 from octolgp.engines.exact import ExactEvidence
 from octolgp.engines.lattice import LatticeEvidence
 from octolgp.errors import MapFileNotFound, OctolgpError
-from octolgp.geometry.keys import pack_keys
+from octolgp.geometry.keys import pack_keys, unpack_keys
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf, LeafEvidence, MapHeader
 from octolgp.persist.lock import WriterLock, held_by_a_writer
 from octolgp.scan import Scan
 
 FORMAT = "octolgp-map"
-VERSION = 4
-READABLE_VERSIONS = ("2", "3", "4")
+VERSION = 5
+READABLE_VERSIONS = ("2", "3", "4", "5")
 """File versions this code opens (2: before the engines owned their leaf records;
-3: before checksums)."""
+3: before checksums; 4: before compact records)."""
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _HEADER = struct.Struct("<4sBBxxqqqq")  # magic, version, dim, values, pruned, refits, touched
 _OLD_HEADER = struct.Struct("<4sBBxxqqqqqq")  # records 1 and 2: h, s, v, pruned, refits, touched
 _CRC = struct.Struct("<I")
 _LEAF_MAGIC = b"OLGL"
-_RECORD = 4
+_RECORD = 5
+_FULL_RECORD = 4  # every leaf's voxel values, its evidence at full precision
+_COMPACT_HEADER = struct.Struct("<4sBBBxqqq")  # magic, record, dim, flags, key, refits, touched
+_VALUES = 1  # flag: the voxel values are stored (engines whose fits are not cheap)
+_PRUNED = 2  # flag: the stored values are one value
+_COUNT = struct.Struct("<q")
 _COUNTS = struct.Struct("<q")  # record 2: halo voxels of the count arrays
 _SCAN_COLUMNS = "idx, dim, origin, points, max_range, stamp"
 
 
 def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
-    """A leaf as bytes: a header, its index and voxel values, its engine's evidence, a CRC.
+    """A leaf as bytes: a header, its voxel values where they must be kept, its evidence.
 
-    Little-endian: the 40-byte header (magic, record version, dimension, number of
-    voxel values, pruned, refits, touched), the index (int64), mean, variance and
-    P(occupied) (float32), :meth:`LeafEngine.encode` of the evidence, then the CRC-32
-    of everything before it (uint32). A leaf waiting for its fit (``leaf.pending``)
-    is refused (``ValueError``): its values are not those of its evidence.
+    Little-endian: the 32-byte header (magic, record 5, dimension, flags, the leaf's
+    packed key, refits, touched); with the ``_VALUES`` flag the number of voxel values (int64) and the mean,
+    variance and P(occupied) (float32); the engine's record of the evidence
+    (:meth:`LeafEngine.record`) compressed with zlib; the CRC-32 of everything before it
+    (uint32). An engine whose values are a function of
+    its evidence (:attr:`LeafEngine.values_from_evidence`) keeps no values: a leaf read
+    back is fitted again, and a leaf waiting for its fit (``leaf.pending``) can be
+    written. Otherwise a pending leaf is refused (``ValueError``).
     """
-    if leaf.pending:
+    keep_values = not engine.values_from_evidence
+    if keep_values and leaf.pending:
         raise ValueError("a leaf whose fit is pending cannot be written")
-    d, v = int(leaf.index.size), leaf.prob.size
-    head = _HEADER.pack(_LEAF_MAGIC, _RECORD, d, v, int(leaf.pruned), leaf.refits, leaf.touched)
-    parts = (
-        leaf.index.astype("<i8"),
-        leaf.mean.astype("<f4"),
-        leaf.var.astype("<f4"),
-        leaf.prob.astype("<f4"),
+    flags = (_VALUES | (_PRUNED if leaf.pruned else 0)) if keep_values else 0
+    key = int(pack_keys(leaf.index[None])[0])
+    head = _COMPACT_HEADER.pack(
+        _LEAF_MAGIC, _RECORD, int(leaf.index.size), flags, key, leaf.refits, leaf.touched
     )
-    body = head + b"".join(p.tobytes() for p in parts) + engine.encode(leaf.evidence)
+    parts = [head]
+    if keep_values:
+        parts.append(_COUNT.pack(leaf.prob.size))
+        parts += [a.astype("<f4").tobytes() for a in (leaf.mean, leaf.var, leaf.prob)]
+    parts.append(zlib.compress(engine.record(leaf.evidence, leaf.index), 6))
+    body = b"".join(parts)
     return body + _CRC.pack(zlib.crc32(body))
 
 
 def decode_leaf(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
-    """Inverse of :func:`encode_leaf` (records 1 to 3 too); ``OctolgpError`` if corrupt."""
+    """Inverse of :func:`encode_leaf` (records 1 to 4 too); ``OctolgpError`` if corrupt.
+
+    A leaf stored without its voxel values
+    comes back with none and ``pending`` set: the map fits it before reading it.
+    """
     if len(blob) < 5:
         raise OctolgpError("leaf record is truncated")
     if blob[:4] != _LEAF_MAGIC:
         raise OctolgpError("leaf record has a bad header")
     if blob[4] in (1, 2):
         return _decode_old(blob, engine, grid)
-    if blob[4] == _RECORD:
-        if len(blob) < _HEADER.size + _CRC.size:
+    if blob[4] in (_RECORD, _FULL_RECORD):
+        if len(blob) < 5 + _CRC.size:
             raise OctolgpError("leaf record is truncated")
         blob, (crc,) = blob[: -_CRC.size], _CRC.unpack_from(blob, len(blob) - _CRC.size)
         if zlib.crc32(blob) != crc:
             raise OctolgpError("leaf record fails its checksum")
-    elif blob[4] != 3:  # record 3: the same layout without the checksum
+        if blob[4] == _RECORD:
+            return _decode_compact(blob, engine, grid)
+    elif blob[4] != 3:  # record 3: record 4's layout without the checksum
         raise OctolgpError("leaf record has a bad header")
     if len(blob) < _HEADER.size:
         raise OctolgpError("leaf record is truncated")
@@ -133,6 +150,37 @@ def decode_leaf(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
     index, mean, var, prob = read_arrays(blob[:at], _HEADER.size, specs)
     evidence = engine.decode(blob[at:], d)
     return Leaf(index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched))
+
+
+def _decode_compact(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
+    """A record 5 leaf (checksum already checked)."""
+    if len(blob) < _COMPACT_HEADER.size:
+        raise OctolgpError("leaf record is truncated")
+    _, _, d, flags, key, refits, touched = _COMPACT_HEADER.unpack_from(blob)
+    if d != grid.dim or flags & ~(_VALUES | _PRUNED) or key < 0:
+        raise OctolgpError("leaf record has a bad header")
+    index = unpack_keys(np.array([key], dtype=np.int64), d)[0]
+    at = _COMPACT_HEADER.size
+    empty = np.zeros(0, np.float32)
+    mean = var = prob = empty
+    if flags & _VALUES:
+        if len(blob) < at + _COUNT.size:
+            raise OctolgpError("leaf record is truncated")
+        (v,) = _COUNT.unpack_from(blob, at)
+        at += _COUNT.size
+        if v < 0 or len(blob) < at + 12 * v:
+            raise OctolgpError("leaf record is truncated")
+        mean, var, prob = read_arrays(blob[: at + 12 * v], at, [(v, "<f4")] * 3)
+        at += 12 * v
+    try:
+        record = zlib.decompress(blob[at:])
+    except zlib.error:
+        raise OctolgpError("leaf record's evidence does not decompress") from None
+    evidence = engine.from_record(record, index)
+    pending = not flags & _VALUES
+    return Leaf(
+        index, evidence, mean, var, prob, bool(flags & _PRUNED), int(refits), int(touched), pending
+    )
 
 
 def _decode_old(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
@@ -446,6 +494,10 @@ class MapFile:
         except OctolgpError as exc:
             raise OctolgpError(f"map file {str(self.path)!r}, leaf {key}: {exc}") from None
         return leaf
+
+    def read_leaves(self, keys: list[int]) -> list[Leaf]:
+        """The persisted leaves ``keys``, in order (:meth:`read_leaf` of each)."""
+        return [self.read_leaf(k) for k in keys]
 
     def scans(self, start: int = 0) -> Iterator[Scan]:
         """The journaled scans with index > ``start``, in order."""

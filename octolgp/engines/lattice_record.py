@@ -1,0 +1,135 @@
+"""The lattice engine's evidence as a compact record: what a leaf must keep to be refitted.
+
+A lattice leaf's voxel values are a deterministic function of its evidence, so the map
+file keeps the evidence only and a leaf read back is fitted again. The record, before
+the map file compresses it:
+
+- a header: halo-box voxels ``H`` (uint32), kept returns ``r`` (uint32), flags (uint8;
+  bit 0: the returns' voxels are listed);
+- a bitmap of the ``H`` halo-box voxels with a count (``np.packbits``, little bit order);
+- the occupied counts, then the free counts, of those voxels (uint8 each);
+- where flag 0 is set, each return's voxel as its flat index in the halo box (uint32);
+  otherwise the returns are those of the occupied voxels in flat order, which is how a
+  lattice leaf keeps them (one return per voxel with an occupied count, keys ascending);
+- each return's cell inside its voxel, :data:`~octolgp.geometry.keys.RETURN_STEPS` per
+  axis (uint16), one axis after the other; or, with flag bit 1 (returns of a leaf made
+  before returns were kept at cells, from an older map file), their positions (float64).
+
+Kept returns are placed at their cells' centres when they are observed
+(:func:`octolgp.geometry.keys.step_points`), so the record is exact: a leaf read back
+holds the same evidence, bit for bit.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from octolgp.errors import OctolgpError
+from octolgp.geometry.keys import pack_keys, return_steps, step_points, unpack_keys
+from octolgp.mapping.grid import LeafGrid
+from octolgp.training import IntArray
+
+_HEAD = struct.Struct("<IIB")
+_LISTED = 1  # flag: the returns' voxels are listed
+_EXACT = 2  # flag: the returns' positions are stored as float64
+
+
+def _box_origin(index: IntArray, grid: LeafGrid) -> IntArray:
+    """The voxel key of the lower corner of a leaf's halo box, per axis."""
+    origin: IntArray = np.asarray(index, dtype=np.int64) * grid.side - grid.halo_voxels
+    return origin
+
+
+def encode_lattice(
+    counts: np.ndarray, hit_keys: IntArray, hits: np.ndarray, index: IntArray, grid: LeafGrid
+) -> bytes:
+    """The compact record of a lattice leaf's evidence (see the module's docstring).
+
+    Parameters
+    ----------
+    counts : ndarray of uint8, shape (2, H)
+        Occupied and free counts per halo-box voxel.
+    hit_keys : ndarray of int64, shape (r,)
+        Packed keys of the voxels holding a kept return, ascending.
+    hits : ndarray of shape (r, d)
+        The kept returns, metres, world frame, at their cells' centres.
+    index : ndarray of int64, shape (d,)
+        The leaf's index.
+    grid : LeafGrid
+    """
+    d = grid.dim
+    n_halo = counts.shape[1]
+    seen = (counts[0] | counts[1]) > 0
+    occupied = np.flatnonzero(counts[0])
+    box = grid.side + 2 * grid.halo_voxels
+    local = unpack_keys(hit_keys, d) - _box_origin(index, grid)
+    flat = local @ (box ** np.arange(d, dtype=np.int64)) if hit_keys.size else occupied[:0]
+    listed = not np.array_equal(flat, occupied)
+    keys = unpack_keys(hit_keys, d)
+    steps = return_steps(hits, keys, grid.resolution, grid.tree_depth)
+    exact = not np.array_equal(step_points(steps, keys, grid.resolution, grid.tree_depth), hits)
+    parts = [
+        _HEAD.pack(n_halo, hit_keys.size, (_LISTED if listed else 0) | (_EXACT if exact else 0)),
+        np.packbits(seen, bitorder="little").tobytes(),
+        counts[0, seen].astype(np.uint8).tobytes(),
+        counts[1, seen].astype(np.uint8).tobytes(),
+    ]
+    if listed:
+        parts.append(flat.astype("<u4").tobytes())
+    if exact:
+        parts.append(np.asarray(hits, dtype="<f8").tobytes())
+    else:
+        parts.append(np.ascontiguousarray(steps.T).astype("<u2").tobytes())
+    return b"".join(parts)
+
+
+def decode_lattice(
+    blob: bytes, index: IntArray, grid: LeafGrid
+) -> tuple[np.ndarray, IntArray, np.ndarray]:
+    """Inverse of :func:`encode_lattice`: ``counts``, ``hit_keys`` and ``hits``.
+
+    Raises
+    ------
+    OctolgpError
+        On a truncated or inconsistent record.
+    """
+    d = grid.dim
+    if len(blob) < _HEAD.size:
+        raise OctolgpError("lattice evidence is truncated")
+    n_halo, r, flags = _HEAD.unpack_from(blob)
+    box = grid.side + 2 * grid.halo_voxels
+    if n_halo not in (0, box**d) or flags & ~(_LISTED | _EXACT):
+        raise OctolgpError("lattice evidence has a bad header")
+    at = _HEAD.size
+    n_bits = (n_halo + 7) // 8
+    if len(blob) < at + n_bits:
+        raise OctolgpError("lattice evidence is truncated")
+    bits = np.frombuffer(blob, np.uint8, n_bits, at)
+    seen = np.unpackbits(bits, count=n_halo, bitorder="little").astype(bool)
+    at += n_bits
+    m = int(seen.sum())
+    listed, exact = bool(flags & _LISTED), bool(flags & _EXACT)
+    need = 2 * m + (4 * r if listed else 0) + (8 if exact else 2) * r * d
+    if len(blob) != at + need:
+        raise OctolgpError("lattice evidence has the wrong length")
+    counts = np.zeros((2, n_halo), dtype=np.uint8)
+    counts[0, seen] = np.frombuffer(blob, np.uint8, m, at)
+    counts[1, seen] = np.frombuffer(blob, np.uint8, m, at + m)
+    at += 2 * m
+    if listed:
+        flat = np.frombuffer(blob, "<u4", r, at).astype(np.int64)
+        at += 4 * r
+    else:
+        flat = np.flatnonzero(counts[0])
+    if flat.size != r or (r and (flat.min() < 0 or flat.max() >= n_halo)):
+        raise OctolgpError("lattice evidence lists returns outside its leaf")
+    local = np.stack([(flat // box**a) % box for a in range(d)], axis=1).astype(np.int64)
+    keys = local + _box_origin(index, grid)
+    if exact:
+        hits = np.frombuffer(blob, "<f8", r * d, at).reshape(r, d).astype(np.float64)
+    else:
+        steps = np.frombuffer(blob, "<u2", r * d, at).reshape(d, r).T
+        hits = step_points(steps, keys, grid.resolution, grid.tree_depth)
+    return counts, pack_keys(keys), hits
