@@ -54,6 +54,47 @@ def as_points(
     return out
 
 
+NO_RETURN_RTOL = 1e-9
+"""A beam at least ``max_range * (1 - NO_RETURN_RTOL)`` long is a no-return (a range
+reported at exactly ``max_range`` must not round into a hit)."""
+
+
+def scan_steps(scan: Scan, precision: float) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """Each return's offset from the sensor in whole steps of ``precision`` metres.
+
+    Returns
+    -------
+    steps : ndarray of int64, shape (n, d)
+        ``round((point - origin) / precision)`` per axis; zero where the point is kept.
+    kept : ndarray of bool, shape (n,)
+        Points that keep their value: no-return beams, and returns that rounding would
+        carry to ``max_range`` (they would read as no-returns).
+    """
+    steps = np.round((scan.points - scan.origin) / precision)
+    kept = np.zeros(len(scan), dtype=bool)
+    if scan.max_range is not None:
+        limit = scan.max_range * (1.0 - NO_RETURN_RTOL)
+        rounded = scan.origin + steps * precision
+        kept = (np.linalg.norm(scan.points - scan.origin, axis=1) >= limit) | (
+            np.linalg.norm(rounded - scan.origin, axis=1) >= limit
+        )
+        steps[kept] = 0
+    return steps.astype(np.int64), kept
+
+
+def points_from_steps(
+    origin: FloatArray,
+    steps: NDArray[np.int64],
+    kept: NDArray[np.bool_],
+    kept_points: FloatArray,
+    precision: float,
+) -> FloatArray:
+    """Inverse of :func:`scan_steps`: ``origin + steps * precision``, the kept points as given."""
+    out: FloatArray = origin + steps.astype(np.float64) * precision
+    out[kept] = kept_points
+    return out
+
+
 def check_scan_size(scan: Scan, limit: int, field: str = "OnlineConfig.max_scan_points") -> None:
     """Refuse a scan with more than ``limit`` points, naming the setting that raises it.
 
@@ -282,6 +323,21 @@ class Scan:
         if points is None:
             raise OctolgpError("Scan.from_pointcloud2: no finite point in the cloud")
         return cls(*points, stamp)
+
+    def rounded(self, precision: float) -> Scan:
+        """The scan with each return rounded to whole ``precision`` steps from the sensor.
+
+        No-return beams, and returns that rounding would carry to ``max_range``, keep
+        their points. Rounding a rounded scan returns it unchanged, bit for bit.
+
+        Parameters
+        ----------
+        precision : float
+            Step, metres (> 0).
+        """
+        steps, kept = scan_steps(self, precision)
+        points = points_from_steps(self.origin, steps, kept, self.points[kept], precision)
+        return Scan(origin=self.origin, points=points, max_range=self.max_range, stamp=self.stamp)
 
     def downsample(self, voxel: float) -> Scan:
         """Keep one endpoint per voxel of edge ``voxel`` (a voxel-grid filter).

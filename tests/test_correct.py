@@ -43,12 +43,20 @@ def drifted_mission() -> tuple[list[Scan], dict[int, np.ndarray]]:
     scans, corrections = [], {}
     for i, s in enumerate(truth, start=1):
         if i < 6:
-            scans.append(s)
+            scans.append(journaled(s))
             continue
         drift = pose(0.04 * (i - 5), -0.03 * (i - 5), 0.01 * (i - 5))
-        scans.append(transform_scan(s, drift))
+        scans.append(journaled(transform_scan(s, drift)))
         corrections[i] = np.linalg.inv(drift)
     return scans, corrections
+
+
+def journaled(scan: Scan) -> Scan:
+    """A scan as the map keeps it (rounded to ``OnlineConfig.scan_precision``): a
+    correction moves what the map was built from."""
+    precision = OnlineConfig().scan_precision
+    assert precision is not None
+    return scan.rounded(precision)
 
 
 def config(engine: str = "lattice") -> MapConfig:
@@ -64,7 +72,7 @@ def test_a_correction_equals_a_fresh_build_from_the_corrected_scans(
         m.insert_scans(scans)
         update = m.correct_scans(corrections)
         corrected = [
-            transform_scan(s, corrections[i]) if i in corrections else s
+            journaled(transform_scan(s, corrections[i])) if i in corrections else s
             for i, s in enumerate(scans, start=1)
         ]
         fresh = OnlineMap(config(engine))
@@ -85,7 +93,7 @@ def test_a_correction_equals_a_fresh_build_from_the_corrected_scans(
 
 
 def test_a_correction_that_moves_a_scan_away_removes_the_leaves_it_made(tmp_path: Path) -> None:
-    scans = [office_scan((0.0, 0.0)), office_scan((0.5, 0.0))]
+    scans = [journaled(office_scan((0.0, 0.0))), journaled(office_scan((0.5, 0.0)))]
     far = Scan(origin=[30.0, 30.0], points=[[31.0, 30.0], [30.0, 31.5]])
     with OnlineMap(config(), path=tmp_path / "m.octolgp") as m:
         m.insert_scans([*scans, far])
@@ -105,7 +113,7 @@ def test_a_correction_while_learning_moves_the_buffered_scans(tmp_path: Path) ->
         m.insert_scans(scans[:3])
         update = m.correct_scans({2: pose(0.1, 0.0, 0.02)})
         assert update.buffered
-        moved = transform_scan(scans[1], pose(0.1, 0.0, 0.02))
+        moved = journaled(transform_scan(scans[1], pose(0.1, 0.0, 0.02)))
         np.testing.assert_array_equal(list(m.scans())[1].points, moved.points)
         m.insert_scans(scans[3:6])
         fresh = OnlineMap(learning)

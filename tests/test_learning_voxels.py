@@ -22,7 +22,13 @@ from threadpoolctl import threadpool_limits
 import octolgp.gp.learning as learning_module
 from octolgp import MapConfig, OctolgpError
 from octolgp.config import Hyperparameters, LearningConfig, OnlineConfig
-from octolgp.geometry.keys import coord_to_key, key_to_coord
+from octolgp.geometry.keys import (
+    RETURN_STEPS,
+    coord_to_key,
+    key_to_coord,
+    return_steps,
+    step_points,
+)
 from octolgp.gp.kernels import item_covariance
 from octolgp.gp.learning import (
     learn_from_voxels,
@@ -148,8 +154,11 @@ def test_voxel_observations_are_the_lattice_engines_counts() -> None:
     k = config.clear_scans
     expected = np.sort(config.lattice.free_weight * np.minimum(seen_free[seen_free > 0], k))
     np.testing.assert_allclose(np.sort(weights[~occupied]), expected)
-    # each occupied voxel sits at a return in it
-    tree_points = {tuple(np.round(p, 12)) for p in returns}
+    # each occupied voxel sits at a return in it, at the cell of its voxel the map keeps
+    return_keys = coord_to_key(returns, res, depth)
+    kept = step_points(return_steps(returns, return_keys, res, depth), return_keys, res, depth)
+    assert np.abs(kept - returns).max() <= 0.5 * res / RETURN_STEPS * (1 + 1e-9)
+    tree_points = {tuple(np.round(p, 12)) for p in kept}
     assert all(tuple(np.round(p, 12)) in tree_points for p in points[occupied])
 
 

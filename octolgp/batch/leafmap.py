@@ -31,7 +31,7 @@ from octolgp.config import Hyperparameters, MapConfig
 from octolgp.engines import LeafFit, engine_for
 from octolgp.errors import OctolgpError
 from octolgp.gp.learning import learn_hyperparameters
-from octolgp.mapping.evidence import LeafFitter, batch_bounds
+from octolgp.mapping.evidence import LeafFitter, batch_bounds, map_scans
 from octolgp.mapping.online import OnlineMap
 from octolgp.mapping.store import Leaf
 from octolgp.scan import Scan
@@ -105,7 +105,7 @@ def build_tiled(
         raise OctolgpError(f"n_jobs must be an integer >= 1, got {n_jobs!r}")
     if isinstance(task_items, bool) or not isinstance(task_items, int) or task_items < 1:
         raise OctolgpError(f"task_items must be an integer >= 1, got {task_items!r}")
-    scan_list = check_scans(scans, config.dim)
+    scan_list = map_scans(check_scans(scans, config.dim), config)  # learnt on what the map uses
     hp = config.hyperparameters
     if hp is None:
         hp = learn_hyperparameters(scan_list[: config.learn_scans], config)

@@ -70,6 +70,7 @@ def build_voxelized(
                     var=var.astype(np.float32),
                     prob=prob.astype(np.float32),
                     refits=1,
+                    fitted=False,  # another method's values: the map file keeps them
                 )
                 out.append(LeafFit(valued, 0))
             yield keys[lo : lo + 512], out

@@ -54,6 +54,7 @@ from octolgp.bench.heldout import (
 )
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
+from octolgp.mapping.evidence import map_scans
 from octolgp.scan import Scan
 
 FloatArray = NDArray[np.float64]
@@ -391,7 +392,7 @@ def evaluate_log(
         if hp is None:
             if progress:
                 progress(f"{name}: learning hyperparameters")
-            hp = learn_hyperparameters(train[: config.learn_scans], config)
+            hp = learn_hyperparameters(map_scans(train[: config.learn_scans], config), config)
         fixed = dataclasses.replace(config, hyperparameters=hp)
         builders = _builders(fixed, n_jobs, fast_online)
         _record_split(report, name, train, points, labels, hp, config)

@@ -189,6 +189,7 @@ def with_values(
         pruned=pruned,
         refits=leaf.refits + 1,
         pending=False,
+        fitted=True,
     )
 
 

@@ -27,7 +27,8 @@ def check_scan(scan: object, config: MapConfig, grid: LeafGrid) -> Scan:
     """Validate a scan for a map: type, size, dimension and addressable range.
 
     The halo of a leaf at the edge of the tree must stay addressable too, so the
-    usable range is the addressable range less two leaf edges on each side.
+    usable range is the addressable range less two leaf edges on each side. Returns
+    the scan the map is built from: rounded to ``OnlineConfig.scan_precision``.
 
     Raises
     ------
@@ -49,7 +50,13 @@ def check_scan(scan: object, config: MapConfig, grid: LeafGrid) -> Scan:
                 f"{name} row {row} ({pts[row].tolist()}) is outside the addressable range "
                 f"[{low + margin:g}, {high - margin:g}) m of this map"
             )
-    return scan
+    return map_scans([scan], config)[0]
+
+
+def map_scans(scans: list[Scan], config: MapConfig) -> list[Scan]:
+    """The scans a map with ``config`` is built from: rounded to ``OnlineConfig.scan_precision``."""
+    precision = config.online.scan_precision
+    return scans if precision is None else [s.rounded(precision) for s in scans]
 
 
 def scan_chunks(scans: list[Scan], beams: int) -> Iterator[list[Scan]]:

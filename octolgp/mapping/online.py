@@ -54,7 +54,13 @@ from octolgp.mapping.correction import (
     plan_replay,
     transform_scan,
 )
-from octolgp.mapping.evidence import LeafFitter, batch_bounds, check_scan, gather_batch
+from octolgp.mapping.evidence import (
+    LeafFitter,
+    batch_bounds,
+    check_scan,
+    gather_batch,
+    map_scans,
+)
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads, leaves_read
 from octolgp.mapping.store import FittingBacking, Leaf, LeafStore, MapStorage
@@ -62,6 +68,7 @@ from octolgp.mapping.update import ScanUpdate
 from octolgp.mapping.workers import Workers, collector_paused
 from octolgp.scan import FloatArray, Scan
 from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
+from octolgp.training import check_scans
 
 __all__ = ["OnlineMap", "ScanUpdate"]
 
@@ -695,10 +702,10 @@ class OnlineMap(MapReads):
                 f"map file {str(self._file.path)!r} holds no journal of its scans (saved from "
                 "memory); only a map made with a path can be corrected"
             )
-        new = {i: transform_scan(old[i], T) for i, T in transforms.items()}
-        for i, scan in new.items():  # a corrected scan must stay inside the map
+        new = {}
+        for i, T in transforms.items():  # a corrected scan must stay inside the map
             try:
-                check_scan(scan, self.config, self.grid)
+                new[i] = check_scan(transform_scan(old[i], T), self.config, self.grid)
             except OctolgpError as exc:
                 raise OctolgpError(
                     f"corrections[{i}] moves the scan out of the map: {exc}"
@@ -844,7 +851,9 @@ class OnlineMap(MapReads):
     @_step_of_state
     def relearn(self, scans: Iterable[Scan]) -> Hyperparameters:
         """Learn new hyperparameters on ``scans`` and refit every leaf with them."""
-        hp = learn_hyperparameters(scans, self.config)
+        hp = learn_hyperparameters(
+            map_scans(check_scans(scans, self.config.dim), self.config), self.config
+        )
         self.set_hyperparameters(hp)
         return hp
 

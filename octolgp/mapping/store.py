@@ -71,6 +71,11 @@ class Leaf:
         Whether the evidence changed since the voxel values were fitted (a deferred fit,
         ``OnlineConfig.defer_fit``): the values are those of older evidence until the
         map settles (:meth:`octolgp.OnlineMap.settle`), which every read does first.
+    fitted : bool
+        Whether the values are the engine's fit of the evidence. ``False`` for values
+        set another way (a batch method's, :func:`octolgp.batch.voxelized.build_voxelized`,
+        or read from a map file that does not say), which a map file must keep; a fit
+        makes it ``True``.
     """
 
     index: IntArray
@@ -82,6 +87,7 @@ class Leaf:
     refits: int = 0
     touched: int = 0
     pending: bool = False
+    fitted: bool = True
 
     def evolve(self, **changes: object) -> Leaf:
         """A shallow copy with ``changes`` applied (``dataclasses.replace``, cheaper).
@@ -107,6 +113,7 @@ class Leaf:
             self.refits,
             self.touched,
             self.pending,
+            self.fitted,
         )
 
     def refitted(
@@ -115,7 +122,7 @@ class Leaf:
         """A shallow copy with fresh voxel values and one more refit, for hot loops.
 
         Equal to ``evolve(mean=mean, var=var, prob=prob, pruned=pruned,
-        refits=self.refits + 1, pending=False)``.
+        refits=self.refits + 1, pending=False, fitted=True)``.
         """
         return Leaf(
             self.index, self.evidence, mean, var, prob, pruned, self.refits + 1, self.touched
@@ -134,7 +141,18 @@ class Leaf:
 
 
 _LEAF_FIELDS = frozenset(
-    ("index", "evidence", "mean", "var", "prob", "pruned", "refits", "touched", "pending")
+    (
+        "index",
+        "evidence",
+        "mean",
+        "var",
+        "prob",
+        "pruned",
+        "refits",
+        "touched",
+        "pending",
+        "fitted",
+    )
 )
 
 

@@ -64,6 +64,7 @@ from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.geometry.keys import pack_keys, unpack_keys
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf, LeafEvidence, MapHeader
+from octolgp.persist.journal import decode_points, encode_points
 from octolgp.persist.lock import WriterLock, held_by_a_writer
 from octolgp.scan import Scan
 
@@ -82,9 +83,11 @@ _FULL_RECORD = 4  # every leaf's voxel values, its evidence at full precision
 _COMPACT_HEADER = struct.Struct("<4sBBBxqqq")  # magic, record, dim, flags, key, refits, touched
 _VALUES = 1  # flag: the voxel values are stored (engines whose fits are not cheap)
 _PRUNED = 2  # flag: the stored values are one value
+_FOREIGN = 4  # flag: the stored values are not the engine's fit of the evidence
 _COUNT = struct.Struct("<q")
 _COUNTS = struct.Struct("<q")  # record 2: halo voxels of the count arrays
 _SCAN_COLUMNS = "idx, dim, origin, points, max_range, stamp"
+_STEPS = 1  # a journal row's codec: the steps of a rounded scan (octolgp.persist.journal)
 
 
 def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
@@ -97,12 +100,15 @@ def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
     (uint32). An engine whose values are a function of
     its evidence (:attr:`LeafEngine.values_from_evidence`) keeps no values: a leaf read
     back is fitted again, and a leaf waiting for its fit (``leaf.pending``) can be
-    written. Otherwise a pending leaf is refused (``ValueError``).
+    written; values set another way (``leaf.fitted`` false) are kept with the
+    ``_FOREIGN`` flag. An engine that keeps values refuses a pending leaf (``ValueError``).
     """
-    keep_values = not engine.values_from_evidence
+    foreign = not leaf.fitted and not leaf.pending
+    keep_values = foreign or not engine.values_from_evidence
     if keep_values and leaf.pending:
         raise ValueError("a leaf whose fit is pending cannot be written")
-    flags = (_VALUES | (_PRUNED if leaf.pruned else 0)) if keep_values else 0
+    flags = _VALUES | (_PRUNED if leaf.pruned else 0) | (_FOREIGN if foreign else 0)
+    flags = flags if keep_values else 0
     key = int(pack_keys(leaf.index[None])[0])
     head = _COMPACT_HEADER.pack(
         _LEAF_MAGIC, _RECORD, int(leaf.index.size), flags, key, leaf.refits, leaf.touched
@@ -148,8 +154,10 @@ def decode_leaf(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
         raise OctolgpError("leaf record is truncated")
     specs = [(d, "<i8"), (v, "<f4"), (v, "<f4"), (v, "<f4")]
     index, mean, var, prob = read_arrays(blob[:at], _HEADER.size, specs)
-    evidence = engine.decode(blob[at:], d)
-    return Leaf(index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched))
+    evidence = engine.decode(blob[at:], d)  # values of unknown provenance: kept when rewritten
+    return Leaf(
+        index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched), False, False
+    )
 
 
 def _decode_compact(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
@@ -157,7 +165,7 @@ def _decode_compact(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
     if len(blob) < _COMPACT_HEADER.size:
         raise OctolgpError("leaf record is truncated")
     _, _, d, flags, key, refits, touched = _COMPACT_HEADER.unpack_from(blob)
-    if d != grid.dim or flags & ~(_VALUES | _PRUNED) or key < 0:
+    if d != grid.dim or flags & ~(_VALUES | _PRUNED | _FOREIGN) or key < 0:
         raise OctolgpError("leaf record has a bad header")
     index = unpack_keys(np.array([key], dtype=np.int64), d)[0]
     at = _COMPACT_HEADER.size
@@ -177,9 +185,10 @@ def _decode_compact(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
     except zlib.error:
         raise OctolgpError("leaf record's evidence does not decompress") from None
     evidence = engine.from_record(record, index)
-    pending = not flags & _VALUES
+    pending, fitted = not flags & _VALUES, not flags & _FOREIGN
+    pruned = bool(flags & _PRUNED)
     return Leaf(
-        index, evidence, mean, var, prob, bool(flags & _PRUNED), int(refits), int(touched), pending
+        index, evidence, mean, var, prob, pruned, int(refits), int(touched), pending, fitted
     )
 
 
@@ -220,7 +229,9 @@ def _decode_old(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
             hit_keys = pack_keys(keys)
             hits = ((keys - (1 << (grid.tree_depth - 1)) + 0.5) * grid.resolution).astype(float)
         evidence = LatticeEvidence(counts, hit_keys, hits)
-    return Leaf(index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched))
+    return Leaf(
+        index, evidence, mean, var, prob, bool(pruned), int(refits), int(touched), False, False
+    )
 
 
 def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
@@ -233,8 +244,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     leaves of 4 voxels a side. Files from before lattice tiles (no ``lattice.tile_voxels``)
     fitted each leaf as one tile on a 2D lattice spacing of 0.3, and files from before
     ``lattice.min_inducing_per_axis`` one lattice point per 3 voxels of the halo box at
-    least; the config keeps both, and files from before ``learning.max_beams`` learnt on
-    every beam. The other derived fields take the defaults they had when those files
+    least; the config keeps both, files from before ``learning.max_beams`` learnt on
+    every beam, and files from before ``online.scan_precision`` kept scans as given. The other derived fields take the defaults they had when those files
     were written, which are today's.
 
     Raises
@@ -260,6 +271,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         config = MapConfig.from_dict(stored)
         box = config.tile_voxels + 2 * config.tile_halo_voxels
         lattice["min_inducing_per_axis"] = max(2, min(config.max_inducing_per_axis, box // 3))
+    if "scan_precision" not in online:
+        online["scan_precision"] = None  # scans kept as given, as then
     learning = stored.setdefault("learning", {})
     if isinstance(learning, dict) and "max_beams" not in learning:
         learning["max_beams"] = None  # learnt on every beam, as then
@@ -277,19 +290,28 @@ def _scan_crc(dim: int, origin: bytes, points: bytes, max_range: object, stamp: 
     )
 
 
-def _scan_row(index: int, scan: Scan) -> tuple[Any, ...]:
+def _scan_row(index: int, scan: Scan, precision: float | None) -> tuple[Any, ...]:
+    """A journal row: float64 points, or with ``precision`` the rounded scan's steps."""
     origin = scan.origin.astype("<f8").tobytes()
-    points = scan.points.astype("<f8").tobytes()
+    if precision is None:
+        points, codec = scan.points.astype("<f8").tobytes(), None
+    else:
+        points, codec = encode_points(scan, precision), _STEPS
     crc = _scan_crc(scan.dim, origin, points, scan.max_range, scan.stamp)
-    return (index, scan.dim, origin, points, scan.max_range, scan.stamp, crc)
+    return (index, scan.dim, origin, points, scan.max_range, scan.stamp, crc, codec)
 
 
 def _row_scan(row: tuple[Any, ...]) -> Scan:
-    index, dim, origin, points, max_range, stamp, crc = row
+    index, dim, origin, points, max_range, stamp, crc, codec = row
     if crc is not None and _scan_crc(dim, origin, points, max_range, stamp) != crc:
         raise OctolgpError(f"journaled scan {index} fails its checksum")
     o = np.frombuffer(origin, dtype="<f8").astype(np.float64)
-    p = np.frombuffer(points, dtype="<f8").astype(np.float64).reshape(-1, int(dim))
+    if codec == _STEPS:
+        p = decode_points(points, o, int(dim))
+    elif codec is None:
+        p = np.frombuffer(points, dtype="<f8").astype(np.float64).reshape(-1, int(dim))
+    else:
+        raise OctolgpError(f"journaled scan {index} has an unknown encoding {codec!r}")
     return Scan(origin=o, points=p, max_range=max_range, stamp=stamp)
 
 
@@ -361,7 +383,8 @@ class MapFile:
         self._grid = LeafGrid.from_config(header.config)
         self._depth = 0  # open write transactions (nested ones join the outer)
         self._wrote = created  # a writer that wrote leaves the file in rollback-journal mode
-        self._crc_column = "crc" in {r[1] for r in con.execute("PRAGMA table_info(scans)")}
+        self._crc_column, self._codec_column = _scan_columns(con)
+        self._precision = header.config.online.scan_precision
 
     # ------------------------------------------------------------------ create / open
     @classmethod
@@ -395,7 +418,7 @@ class MapFile:
             con.execute(
                 "CREATE TABLE scans(idx INTEGER PRIMARY KEY, dim INTEGER NOT NULL, "
                 "origin BLOB NOT NULL, points BLOB NOT NULL, max_range REAL, stamp REAL, "
-                "crc INTEGER)"
+                "crc INTEGER, codec INTEGER)"
             )
             rows = [
                 ("format", FORMAT),
@@ -529,7 +552,8 @@ class MapFile:
 
     @property
     def _scan_select(self) -> str:
-        return _SCAN_COLUMNS + (", crc" if self._crc_column else ", NULL")
+        crc = ", crc" if self._crc_column else ", NULL"
+        return _SCAN_COLUMNS + crc + (", codec" if self._codec_column else ", NULL")
 
     # ------------------------------------------------------------------ writes
     @contextmanager
@@ -560,6 +584,9 @@ class MapFile:
             if not self._crc_column:  # a file from before checksums gains the column
                 con.execute("ALTER TABLE scans ADD COLUMN crc INTEGER")
                 self._crc_column = True
+            if not self._codec_column:  # a file from before compact journals, too
+                con.execute("ALTER TABLE scans ADD COLUMN codec INTEGER")
+                self._codec_column = True
             con.execute("UPDATE meta SET value=? WHERE key='version'", (str(VERSION),))
             yield con
             con.execute("COMMIT")
@@ -568,7 +595,7 @@ class MapFile:
             if con.in_transaction:
                 with suppress(sqlite3.Error):  # a failed commit may have rolled back already
                     con.execute("ROLLBACK")
-            self._crc_column = "crc" in {r[1] for r in con.execute("PRAGMA table_info(scans)")}
+            self._crc_column, self._codec_column = _scan_columns(con)
             if isinstance(exc, sqlite3.Error):
                 raise self._failed(exc) from None
             raise
@@ -596,8 +623,8 @@ class MapFile:
         engine = self._engine
         with self.transaction() as con:
             con.executemany(
-                f"INSERT INTO scans({_SCAN_COLUMNS}, crc) VALUES (?, ?, ?, ?, ?, ?, ?)",
-                (_scan_row(i, s) for i, s in journal),
+                f"INSERT INTO scans({_SCAN_COLUMNS}, crc, codec) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (_scan_row(i, s, self._precision) for i, s in journal),
             )
             for k, leaf in leaves:  # one row per changed leaf
                 con.execute(
@@ -625,10 +652,10 @@ class MapFile:
         engine = self._engine
         with self.transaction() as con:
             for i, s in journal:  # one row per corrected scan
-                row = _scan_row(i, s)
+                row = _scan_row(i, s, self._precision)
                 con.execute(
-                    "UPDATE scans SET dim=?, origin=?, points=?, max_range=?, stamp=?, crc=? "
-                    "WHERE idx=?",
+                    "UPDATE scans SET dim=?, origin=?, points=?, max_range=?, stamp=?, crc=?, "
+                    "codec=? WHERE idx=?",
                     (*row[1:], i),
                 )
             con.executemany("DELETE FROM leaves WHERE key=?", ((int(k),) for k in removed))
@@ -659,6 +686,12 @@ class MapFile:
                 self._lock.release()
         if self.temporary:
             _remove(self.path)
+
+
+def _scan_columns(con: sqlite3.Connection) -> tuple[bool, bool]:
+    """Whether the journal table has the ``crc`` and the ``codec`` columns."""
+    names = {r[1] for r in con.execute("PRAGMA table_info(scans)")}
+    return "crc" in names, "codec" in names
 
 
 def _read_header(p: Path, con: sqlite3.Connection) -> MapHeader:

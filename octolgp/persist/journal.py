@@ -1,0 +1,92 @@
+"""A journaled scan's points, compactly and exactly: the steps of a rounded scan.
+
+A map with ``OnlineConfig.scan_precision`` is built from scans rounded to whole steps
+from the sensor (:meth:`octolgp.Scan.rounded`), so the journal can keep the steps
+instead of the float64 points and still give back exactly what the map was built from.
+The blob, before zlib:
+
+- a header: the step in metres (float64), points ``n`` (uint32), kept points ``k``
+  (uint32), bytes per step difference ``w`` (uint8: 4, or 8 for steps too far apart);
+- a bitmap of the kept points (``np.packbits``, little bit order) and their
+  coordinates (float64, ``k`` x d): no-return beams keep their points;
+- per axis, the differences of consecutive points' steps (the first from zero), in
+  ``w``-byte integers, the bytes of each significance stored together (a byte
+  shuffle): neighbouring beams of a lidar scan have close steps, so the differences
+  are small and most of their high bytes zero, which zlib packs tightly.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+
+import numpy as np
+
+from octolgp.errors import OctolgpError
+from octolgp.scan import FloatArray, Scan, points_from_steps, scan_steps
+
+_HEAD = struct.Struct("<dIIB")
+
+
+def _shuffled(diffs: np.ndarray, width: int) -> bytes:
+    """The bytes of ``diffs`` (d, n) grouped by significance per axis."""
+    d, n = diffs.shape
+    raw = np.ascontiguousarray(diffs.astype(f"<i{width}")).view(np.uint8).reshape(d, n, width)
+    return np.ascontiguousarray(raw.transpose(0, 2, 1)).tobytes()
+
+
+def _unshuffled(blob: bytes, d: int, n: int, width: int) -> np.ndarray:
+    """Inverse of :func:`_shuffled`: int64 differences, (d, n)."""
+    raw = np.frombuffer(blob, np.uint8, d * n * width).reshape(d, width, n)
+    out: np.ndarray = np.ascontiguousarray(raw.transpose(0, 2, 1)).view(f"<i{width}").reshape(d, n)
+    return out.astype(np.int64)
+
+
+def encode_points(scan: Scan, precision: float) -> bytes:
+    """A rounded scan's points as a compact blob (see the module's docstring).
+
+    ``scan`` must be rounded to ``precision`` (``scan.rounded(precision)``); its points
+    then read back bit for bit (:func:`decode_points`).
+    """
+    steps, kept = scan_steps(scan, precision)
+    diffs = np.diff(steps.T, axis=1, prepend=0)
+    width = 4 if np.abs(diffs).max(initial=0) < 2**31 else 8
+    parts = [
+        _HEAD.pack(precision, len(scan), int(kept.sum()), width),
+        np.packbits(kept, bitorder="little").tobytes(),
+        scan.points[kept].astype("<f8").tobytes(),
+        _shuffled(diffs, width),
+    ]
+    return zlib.compress(b"".join(parts), 6)
+
+
+def decode_points(blob: bytes, origin: FloatArray, dim: int) -> FloatArray:
+    """Inverse of :func:`encode_points`: the points, (n, d) float64.
+
+    Raises
+    ------
+    OctolgpError
+        On a blob that does not decompress or does not add up.
+    """
+    try:
+        raw = zlib.decompress(blob)
+    except zlib.error:
+        raise OctolgpError("journaled points do not decompress") from None
+    if len(raw) < _HEAD.size:
+        raise OctolgpError("journaled points are truncated")
+    precision, n, k, width = _HEAD.unpack_from(raw)
+    n_bits = (n + 7) // 8
+    if width not in (4, 8) or not precision > 0 or k > n:
+        raise OctolgpError("journaled points have a bad header")
+    if len(raw) != _HEAD.size + n_bits + 8 * k * dim + dim * n * width:
+        raise OctolgpError("journaled points have the wrong length")
+    at = _HEAD.size
+    bits = np.unpackbits(np.frombuffer(raw, np.uint8, n_bits, at), count=n, bitorder="little")
+    kept = bits.astype(bool)
+    at += n_bits
+    if int(kept.sum()) != k:
+        raise OctolgpError("journaled points have a bad header")
+    kept_points = np.frombuffer(raw, "<f8", k * dim, at).reshape(k, dim)
+    at += 8 * k * dim
+    steps = np.cumsum(_unshuffled(raw[at:], dim, n, width), axis=1).T
+    return points_from_steps(origin, steps, kept, kept_points, precision)

@@ -1,0 +1,105 @@
+"""The journal: rounded scans stored as steps, read back bit for bit; maps built from them."""
+
+from __future__ import annotations
+
+import dataclasses
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineConfig, OnlineMap, Scan
+from octolgp.persist.journal import decode_points, encode_points
+from octolgp.sim.lidar3d import simulate_lidar_room
+
+HP = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+
+
+def _scan(seed: int, n: int, max_range: float | None, dim: int = 3) -> Scan:
+    rng = np.random.default_rng(seed)
+    origin = rng.uniform(-50.0, 50.0, dim)
+    u = rng.normal(size=(n, dim))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    r = rng.uniform(0.05, 30.0, n)
+    if max_range is not None:
+        r[::5] = max_range  # no-returns
+        r[1::7] = max_range - 1e-4  # returns that rounding could carry to max_range
+    return Scan(origin=origin, points=origin + u * r[:, None], max_range=max_range)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 10_000),
+    n=st.integers(1, 400),
+    precision=st.sampled_from([1e-4, 0.001, 0.005, 0.01, 0.05]),
+    max_range=st.sampled_from([None, 30.0]),
+    dim=st.sampled_from([2, 3]),
+)
+def test_rounding_is_idempotent_and_the_journal_exact(
+    seed: int, n: int, precision: float, max_range: float | None, dim: int
+) -> None:
+    scan = _scan(seed, n, max_range, dim)
+    rounded = scan.rounded(precision)
+    # each return moves by at most half a step per axis; no-returns keep their points
+    assert np.abs(rounded.points - scan.points).max() <= 0.5 * precision * (1 + 1e-6) + 1e-9
+    assert np.array_equal(rounded.rounded(precision).points, rounded.points)
+    if max_range is not None:
+        limit = max_range * (1 - 1e-9)
+        length = np.linalg.norm(scan.points - scan.origin, axis=1)
+        after = np.linalg.norm(rounded.points - rounded.origin, axis=1)
+        assert np.array_equal(length >= limit, after >= limit)  # no beam changes kind
+        assert np.array_equal(rounded.points[length >= limit], scan.points[length >= limit])
+    blob = encode_points(rounded, precision)
+    back = decode_points(blob, rounded.origin, dim)
+    assert back.tobytes() == rounded.points.tobytes()
+
+
+def test_a_corrupt_journal_blob_is_an_error() -> None:
+    scan = _scan(0, 100, 30.0).rounded(0.01)
+    blob = encode_points(scan, 0.01)
+    with pytest.raises(OctolgpError, match="decompress"):
+        decode_points(blob[:-5], scan.origin, 3)
+    with pytest.raises(OctolgpError, match="length"):
+        decode_points(blob, scan.origin, 2)
+
+
+def test_the_map_is_built_from_the_rounded_scans() -> None:
+    config = MapConfig(dim=3, resolution=0.2)
+    exact = dataclasses.replace(config, online=OnlineConfig(scan_precision=None))
+    room = simulate_lidar_room(2, seed=0, n_azimuth=256, n_elevation=16, max_range=20.0)
+    scans = [s.downsample(0.2) for s in room.scans()]
+    a = OnlineMap(dataclasses.replace(config, hyperparameters=HP))
+    b = OnlineMap(dataclasses.replace(exact, hyperparameters=HP))
+    a.insert_scans(scans)
+    b.insert_scans([s.rounded(0.01) for s in scans])
+    probe = np.concatenate([s.points for s in scans])
+    assert np.array_equal(a.occupancy(probe), b.occupancy(probe))
+
+
+def test_the_file_journals_compactly_and_replays_what_the_map_used(tmp_path: Path) -> None:
+    room = simulate_lidar_room(3, seed=1, n_azimuth=256, n_elevation=16, max_range=20.0)
+    scans = [s.downsample(0.2) for s in room.scans()]
+    config = MapConfig(dim=3, resolution=0.2, hyperparameters=HP)
+    path = tmp_path / "m.octolgp"
+    with OnlineMap(config, path=path) as m:
+        m.insert_scans(scans)
+    con = sqlite3.connect(path)
+    rows = con.execute("SELECT length(points), codec FROM scans ORDER BY idx").fetchall()
+    con.close()
+    points = sum(len(s) for s in scans)
+    assert all(codec == 1 for _, codec in rows)
+    assert sum(n for n, _ in rows) < 8 * points  # float64 would be 24 bytes a point
+    with OnlineMap.open(path, read_only=True) as back:
+        journal = list(back._file.scans())  # type: ignore[union-attr]
+    for got, scan in zip(journal, scans, strict=True):
+        assert got.points.tobytes() == scan.rounded(0.01).points.tobytes()
+        assert got.origin.tobytes() == scan.origin.tobytes()
+
+
+def test_a_bad_scan_precision_names_the_field() -> None:
+    for bad in (0.0, -1.0, float("nan"), 2.0, True, "0.01"):
+        with pytest.raises(OctolgpError, match=r"OnlineConfig\.scan_precision"):
+            OnlineConfig(scan_precision=bad)  # type: ignore[arg-type]
