@@ -58,10 +58,13 @@ def reference(scans: list[Scan], engine: str = "lattice") -> np.ndarray:
     return values(m)
 
 
-def same_scans(a: list[Scan], b: list[Scan]) -> bool:
-    return len(a) == len(b) and all(
-        np.array_equal(x.origin, y.origin) and np.array_equal(x.points, y.points)
-        for x, y in zip(a, b, strict=True)
+def same_scans(journal: list[Scan], inserted: list[Scan]) -> bool:
+    """Whether a journal holds the inserted scans as the map keeps them (rounded)."""
+    precision = CONFIG.online.scan_precision
+    assert precision is not None
+    return len(journal) == len(inserted) and all(
+        np.array_equal(x.origin, y.origin) and np.array_equal(x.points, y.rounded(precision).points)
+        for x, y in zip(journal, inserted, strict=True)
     )
 
 

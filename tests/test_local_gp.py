@@ -279,7 +279,7 @@ def test_online_map_reports_repaired_leaves() -> None:
     # two hits 2e-12 m apart on either side of a voxel border: both kept (one per
     # voxel), nearly coincident, so with no noise the leaf's kernel matrix is singular
     # (the exact engine's: lattice leaves never need a jitter repair)
-    exact = OnlineConfig(engine="exact")
+    exact = OnlineConfig(engine="exact", scan_precision=None)
     hp = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)
     m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp, online=exact))
     pts = np.array([[1.0 - 1e-12, 0.05], [1.0 + 1e-12, 0.05], [1.0, 0.35]])
@@ -304,7 +304,7 @@ def test_concurrent_maps_count_only_their_own_repairs() -> None:
     bad = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)  # no noise: near-coincident hits repair
     pts = np.array([[1.0 - 1e-12, 0.05], [1.0 + 1e-12, 0.05], [1.0, 0.35]])
     healthy = np.c_[np.full(20, 2.0), np.linspace(-1, 1, 20)]
-    exact = OnlineConfig(engine="exact")  # jitter repairs are the exact engine's
+    exact = OnlineConfig(engine="exact", scan_precision=None)  # jitter repairs are the exact engine's
     a = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=bad, online=exact))
     b = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters(), online=exact))
     counts: dict[str, list[int]] = {"a": [], "b": []}

@@ -7,7 +7,9 @@ import pytest
 
 from octolgp import LatticeConfig, MapConfig, Scan
 from octolgp.engines.lattice import LatticeEvidence
+from octolgp.geometry.keys import return_steps, step_points
 from octolgp.geometry.raycast import traverse_voxels
+from octolgp.mapping.evidence import map_scans
 from octolgp.observations import advance, merge_observations, newer_evidence_wins, observe
 
 
@@ -81,8 +83,11 @@ def test_observations_match_a_per_beam_brute_force() -> None:
         assert got == truth
         assert obs.hits.max() >= 2  # the repeated scan
         for k, h, p in zip(obs.keys, obs.hits, obs.first_hit, strict=True):
-            if h:
-                np.testing.assert_array_equal(p, first[tuple(int(v) for v in k)])
+            if h:  # the first return, at the cell of its voxel a leaf keeps it at
+                point = first[tuple(int(v) for v in k)][None]
+                key = k[None].astype(np.int64)
+                kept = step_points(return_steps(point, key, 0.2, 16), key, 0.2, 16)[0]
+                np.testing.assert_array_equal(p, kept)
             else:
                 assert np.isnan(p).all()
 
@@ -117,7 +122,7 @@ def test_a_lattice_leaf_keeps_the_first_return_of_each_voxel_it_sees_occupied() 
     scans = _scans(np.random.default_rng(4), 2)
     m = OnlineMap(config)
     m.insert_scans(scans)
-    obs = observe(scans, config)
+    obs = observe(map_scans(scans, config), config)  # the scans as the map rounds them
     first = {int(k): p for k, p in zip(pack_keys(obs.keys), obs.first_hit, strict=True)}
     side, halo = m.grid.side, m.grid.halo_voxels
     box = side + 2 * halo

@@ -22,7 +22,7 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan, load_scans
+from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, Scan, load_scans
 from octolgp.cli import main
 from octolgp.errors import OctolgpError
 from octolgp.io.rrd_read import read_rrd
@@ -38,6 +38,8 @@ from octolgp.sinks.rerun import (
 
 INTEL20 = Path(__file__).parent / "data" / "intel_first20.log"
 HP = Hyperparameters(length_scale=0.8, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
+
+PRECISION = float(OnlineConfig().scan_precision or 0.0)  # what the map rounds scans to
 
 
 def _scans(dim: int, n: int = 4) -> list[Scan]:
@@ -222,12 +224,12 @@ def test_2d_tiles_are_logged_only_when_a_scan_changed_them(tmp_path: Path) -> No
     scans = _scans(2) * (k + 1)
     assert len(back) == n
     for a, b in zip(scans + scans[:2], back, strict=True):
-        assert np.array_equal(a.points, b.points)
+        assert np.array_equal(a.rounded(PRECISION).points, b.points)  # as the map kept it
         assert np.array_equal(a.origin, b.origin)
         assert a.stamp == b.stamp
     # and so do the points of the sensor entity (only it is posed)
     posed = list(read_rrd(rrd, points="world/sensor/points"))
-    np.testing.assert_allclose(posed[0].points, scans[0].points, atol=1e-5)
+    np.testing.assert_allclose(posed[0].points, scans[0].rounded(PRECISION).points, atol=1e-5)
 
 
 def test_3d_regions_hold_the_occupied_voxels(tmp_path: Path) -> None:
@@ -448,7 +450,7 @@ def test_stream_over_loopback_grpc(tmp_path: Path) -> None:
     back = list(read_rrd(received))
     assert len(back) == len(scans)
     for a, b in zip(scans, back, strict=True):
-        assert np.array_equal(a.points, b.points)
+        assert np.array_equal(a.rounded(PRECISION).points, b.points)  # as the map kept it
 
 
 @pytest.mark.parametrize("option", ["--rerun-serve", "--rerun-web"])

@@ -98,8 +98,8 @@ def _after_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iter
     ------
     OctolgpError
         If the map keeps no journal, the log is shorter than the journal, or the log's
-        first scans are not the journaled ones (origins and points compared exactly: both
-        are the loader's float64 values).
+        first scans are not the journaled ones (origins and points compared exactly, the
+        log's rounded as the map rounds what it inserts).
     """
     try:
         return _check_journal(m, iter(scans), out, source)
@@ -112,9 +112,13 @@ def _check_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iter
     """:func:`_after_journal`, leaving the map open."""
     import numpy as np
 
+    from octolgp.mapping.evidence import map_scans
+
     n = 0
     for n, mine in enumerate(m.scans(), start=1):  # one iteration per journaled scan
         theirs = next(scans, None)
+        if theirs is not None:
+            theirs = map_scans([theirs], m.config)[0]
         if theirs is None:
             raise OctolgpError(
                 f"--resume: {source} holds {n - 1} scans, {str(out)!r} {m.n_scans}: the map "
