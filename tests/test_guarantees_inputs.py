@@ -210,7 +210,9 @@ def _same(got: Scan, want: Scan, *, kept: bool = False) -> None:
     """``got`` is ``want``; ``kept``: as a map kept it (rounded to ``OnlineConfig.scan_precision``)."""
     precision = OnlineConfig().scan_precision
     assert precision is not None
-    np.testing.assert_array_equal(got.points, want.rounded(precision).points if kept else want.points)
+    np.testing.assert_array_equal(
+        got.points, want.rounded(precision).points if kept else want.points
+    )
     np.testing.assert_array_equal(got.origin, want.origin)
     assert got.max_range == want.max_range
 

@@ -304,7 +304,8 @@ def test_concurrent_maps_count_only_their_own_repairs() -> None:
     bad = Hyperparameters(0.5, 1.0, 1e-300, 1.0, 0.0)  # no noise: near-coincident hits repair
     pts = np.array([[1.0 - 1e-12, 0.05], [1.0 + 1e-12, 0.05], [1.0, 0.35]])
     healthy = np.c_[np.full(20, 2.0), np.linspace(-1, 1, 20)]
-    exact = OnlineConfig(engine="exact", scan_precision=None)  # jitter repairs are the exact engine's
+    # jitter repairs are the exact engine's; the points as given, not rounded
+    exact = OnlineConfig(engine="exact", scan_precision=None)
     a = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=bad, online=exact))
     b = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=Hyperparameters(), online=exact))
     counts: dict[str, list[int]] = {"a": [], "b": []}
