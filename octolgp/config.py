@@ -364,6 +364,16 @@ class OnlineConfig:
         scan at 0.01 m, against 24), so a pose correction replays what the map was
         built from. ``None``: scans are kept as given (float64; files written before
         this setting). Default 0.01.
+    journal_scans : int or None
+        How many of the latest scans a map file's journal keeps for pose corrections
+        (:meth:`OnlineMap.correct_scans <octolgp.OnlineMap.correct_scans>`). Every this
+        many scans the map file marks a checkpoint and keeps, for each leaf changed
+        since, its evidence as of the checkpoint; scans before the oldest checkpoint a
+        correction may need are dropped from the journal (their evidence stays in the
+        leaves and the checkpoint), so the journal holds between this many and twice
+        this many scans and a correction reaches at least the latest this many. A
+        correction of an older scan is refused. ``None``: every scan is kept. Default
+        None.
     """
 
     engine: str = "lattice"
@@ -376,6 +386,7 @@ class OnlineConfig:
     prune: bool | None = None
     defer_fit: bool = True
     scan_precision: float | None = 0.01
+    journal_scans: int | None = None
 
     def __post_init__(self) -> None:
         if self.engine not in ("lattice", "exact"):
@@ -405,6 +416,8 @@ class OnlineConfig:
             raise OctolgpError(f"OnlineConfig.prune must be a bool, got {self.prune!r}")
         if not isinstance(self.defer_fit, bool):
             raise OctolgpError(f"OnlineConfig.defer_fit must be a bool, got {self.defer_fit!r}")
+        if self.journal_scans is not None:
+            _integer("OnlineConfig", "journal_scans", self.journal_scans, 1)
         p = self.scan_precision
         ok = isinstance(p, int | float) and not isinstance(p, bool)
         if p is not None and (not ok or not math.isfinite(p) or not 1e-6 <= p <= 1.0):

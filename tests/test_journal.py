@@ -10,12 +10,16 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_correct import journaled, office_scan, pose
+from test_online import assert_same_map
 
 from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineConfig, OnlineMap, Scan
+from octolgp.mapping.correction import transform_scan
 from octolgp.persist.journal import decode_points, encode_points
 from octolgp.sim.lidar3d import simulate_lidar_room
 
 HP = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+HP2 = Hyperparameters(length_scale=0.6, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
 
 
 def _scan(seed: int, n: int, max_range: float | None, dim: int = 3) -> Scan:
@@ -103,3 +107,92 @@ def test_a_bad_scan_precision_names_the_field() -> None:
     for bad in (0.0, -1.0, float("nan"), 2.0, True, "0.01"):
         with pytest.raises(OctolgpError, match=r"OnlineConfig\.scan_precision"):
             OnlineConfig(scan_precision=bad)  # type: ignore[arg-type]
+
+
+def _loop_mission(n: int) -> tuple[list[Scan], dict[int, np.ndarray]]:
+    """``n`` scans around an office; from scan 5 on odometry drifts, the corrections undo it."""
+    truth = [
+        office_scan((2.0 * np.cos(a) - 0.5, 2.0 * np.sin(a) - 1.0))
+        for a in np.linspace(0.0, 6.0, n)
+    ]
+    scans, corrections = [], {}
+    for i, s in enumerate(truth, start=1):
+        drift = pose(0.02 * max(i - 4, 0), -0.015 * max(i - 4, 0), 0.005 * max(i - 4, 0))
+        scans.append(journaled(transform_scan(s, drift)))
+        corrections[i] = np.linalg.inv(drift)
+    return scans, corrections
+
+
+def _corrected(
+    scans: list[Scan], corrections: dict[int, np.ndarray], which: list[int]
+) -> list[Scan]:
+    return [
+        journaled(transform_scan(s, corrections[i])) if i in which else s
+        for i, s in enumerate(scans, start=1)
+    ]
+
+
+@pytest.mark.parametrize("engine", ["lattice", "exact"])
+def test_a_journal_window_keeps_the_latest_scans_and_corrects_them_exactly(
+    tmp_path: Path, engine: str
+) -> None:
+    """With journal_scans = 4 the journal keeps 4 to 7 scans; corrections inside it equal a
+    fresh build (checkpoints after the journal's start rebuilt too), older ones are refused."""
+    scans, corrections = _loop_mission(22)
+    online = OnlineConfig(engine=engine, journal_scans=4)
+    config = MapConfig(dim=2, resolution=0.1, hyperparameters=HP2, online=online)
+    fresh_config = dataclasses.replace(config, online=OnlineConfig(engine=engine))
+    path = tmp_path / "m.octolgp"
+    with OnlineMap(config, path=path) as m:
+        for k, scan in enumerate(scans[:13], start=1):
+            m.insert_scan(scan)
+            assert 0 <= k - m.journal_start <= 7
+            assert len(list(m.scans())) == k - m.journal_start
+        assert m.journal_start == 8  # checkpoints at 8 and 12
+        with pytest.raises(OctolgpError, match=r"journal_scans = 4"):
+            m.correct_scans({8: corrections[8]})
+        m.correct_scans({10: corrections[10], 11: corrections[11]})  # before checkpoint 12
+        done = [10, 11]
+        fresh = OnlineMap(fresh_config)
+        fresh.insert_scans(_corrected(scans[:13], corrections, done))
+        assert_same_map(m, fresh)
+        for scan in scans[13:22]:  # mapping goes on; the window moves past the correction
+            m.insert_scan(scan)
+            fresh.insert_scan(scan)
+        assert m.journal_start == 16
+        m.correct_scans({17: corrections[17], 22: corrections[22]})
+        done += [17, 22]
+        fresh = OnlineMap(fresh_config)
+        fresh.insert_scans(_corrected(scans[:22], corrections, done))
+        assert_same_map(m, fresh)
+        saved = tmp_path / "saved.octolgp"
+        m.save(saved)
+    for p in (path, saved):  # the file, and a copy of it, correct as the live map did
+        with OnlineMap.open(p) as back:
+            assert back.journal_start == 16
+            assert_same_map(back, fresh)
+            back.correct_scans({18: corrections[18]})
+            again = OnlineMap(fresh_config)
+            again.insert_scans(_corrected(scans[:22], corrections, [*done, 18]))
+            assert_same_map(back, again)
+
+
+def test_a_budgeted_map_keeps_a_journal_window_in_its_spill_file() -> None:
+    scans, corrections = _loop_mission(14)
+    online = OnlineConfig(journal_scans=5)
+    config = MapConfig(dim=2, resolution=0.1, hyperparameters=HP2, online=online)
+    m = OnlineMap(dataclasses.replace(config, memory_budget_mb=0.05))
+    m.insert_scans(scans)
+    assert m.store.evictions > 0
+    assert m.journal_start == 5
+    m.correct_scans({12: corrections[12]})
+    fresh = OnlineMap(dataclasses.replace(config, online=OnlineConfig()))
+    fresh.insert_scans(_corrected(scans, corrections, [12]))
+    assert_same_map(m, fresh)
+    m.close()
+
+
+def test_a_bad_journal_window_names_the_field() -> None:
+    for bad in (0, -3, 2.5, True):
+        with pytest.raises(OctolgpError, match=r"OnlineConfig\.journal_scans"):
+            OnlineConfig(journal_scans=bad)  # type: ignore[arg-type]

@@ -114,8 +114,14 @@ def _check_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iter
 
     from octolgp.mapping.evidence import map_scans
 
-    n = 0
-    for n, mine in enumerate(m.scans(), start=1):  # one iteration per journaled scan
+    n = start = m.journal_start  # a journal that keeps the latest scans begins later
+    for _ in range(start):  # one iteration per scan folded out of the journal
+        if next(scans, None) is None:
+            raise OctolgpError(
+                f"--resume: {source} holds fewer scans than {str(out)!r} ({m.n_scans}): the "
+                "map was built from another log"
+            )
+    for n, mine in enumerate(m.scans(), start=start + 1):  # one iteration per journaled scan
         theirs = next(scans, None)
         if theirs is not None:
             theirs = map_scans([theirs], m.config)[0]

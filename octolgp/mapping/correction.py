@@ -164,23 +164,27 @@ def overlapping_scans(extents: IntArray, leaves: IntArray, grid: LeafGrid) -> ND
 
 
 class JournalExtents:
-    """Each journaled scan's extent in voxel keys, (n_scans, 2, d), kept up to date.
+    """Each journaled scan's extent in voxel keys, (journaled scans, 2, d), kept up to date.
 
     Read from the journal on the first correction, then extended as scans are journaled,
-    so a later correction reads only the scans that reach what it moves.
+    so a later correction reads only the scans that reach what it moves. Row ``j`` is
+    scan ``start + j + 1``, ``start`` the journal's (``MapStorage.journal_start``).
     """
 
     def __init__(self, grid: LeafGrid) -> None:
         self.grid = grid
         self._boxes: IntArray | None = None
+        self._start = 0
 
-    def read(self, storage: MapStorage, n_scans: int) -> IntArray:
-        """The extents of the ``n_scans`` journaled scans (read once, a copy)."""
-        if self._boxes is None or self._boxes.shape[0] != n_scans:
-            boxes = [scan_extents([s], self.grid) for s in storage.scans()]
+    def read(self, storage: MapStorage, n_scans: int) -> tuple[int, IntArray]:
+        """The journal's start and the extents of its scans (read once, a copy)."""
+        start = storage.journal_start
+        if self._boxes is None or self._start != start or self._boxes.shape[0] != n_scans - start:
+            boxes = [scan_extents([s], self.grid) for s in storage.scans(start)]
             d = self.grid.dim
             self._boxes = np.concatenate(boxes) if boxes else np.zeros((0, 2, d), np.int64)
-        return self._boxes.copy()
+            self._start = start
+        return start, self._boxes.copy()
 
     def journaled(self, scans: list[Scan]) -> None:
         """Add the extents of newly journaled scans (once the extents have been read)."""
@@ -200,6 +204,8 @@ class Replay:
     ----------
     affected : list of int
         Packed keys of the leaves either version of a corrected scan reaches, ascending.
+    numbers : list of int
+        The numbers of ``scans`` (from 1), ascending.
     scans : list of Scan
         Every journaled scan whose extent reaches them, corrected, in time order.
     extents : ndarray of int64, shape (n_scans, 2, d)
@@ -207,12 +213,14 @@ class Replay:
     """
 
     affected: list[int]
+    numbers: list[int]
     scans: list[Scan]
     extents: IntArray
 
 
 def plan_replay(
     storage: MapStorage,
+    start: int,
     extents: IntArray,
     old: Mapping[int, Scan],
     new: Mapping[int, Scan],
@@ -225,7 +233,9 @@ def plan_replay(
     ----------
     storage : MapStorage
         The map file holding the journal.
-    extents : ndarray of int64, shape (n_scans, 2, d)
+    start : int
+        The journal holds the scans after this one.
+    extents : ndarray of int64, shape (journaled scans, 2, d)
         The journal's extents before the correction (:class:`JournalExtents`).
     old, new : mapping of int to Scan
         The corrected scans before and after, by number.
@@ -237,15 +247,17 @@ def plan_replay(
     grid = engine.grid
     reach = engine.evidence([*old.values(), *new.values()], lambda _: None, stats)
     affected = sorted(reach.touched)
-    corrected = moved_extents(extents, new, grid)
+    corrected = moved_extents(extents, start, new, grid)
     index = unpack_keys(np.asarray(affected, dtype=np.int64), grid.dim)
-    near = (np.flatnonzero(overlapping_scans(corrected, index, grid)) + 1).tolist()
+    near = (np.flatnonzero(overlapping_scans(corrected, index, grid)) + start + 1).tolist()
     journal = storage.read_scans(near)
-    return Replay(affected, [new.get(i, journal[i]) for i in near], corrected)
+    return Replay(affected, near, [new.get(i, journal[i]) for i in near], corrected)
 
 
-def moved_extents(extents: IntArray, new: Mapping[int, Scan], grid: LeafGrid) -> IntArray:
-    """The journal's extents with the scans ``new`` (by number, from 1) in their place."""
+def moved_extents(
+    extents: IntArray, start: int, new: Mapping[int, Scan], grid: LeafGrid
+) -> IntArray:
+    """The journal's extents (scans after ``start``) with the scans ``new`` in their place."""
     out = extents.copy()
-    out[np.array(list(new), dtype=np.int64) - 1] = scan_extents(list(new.values()), grid)
+    out[np.array(list(new), dtype=np.int64) - start - 1] = scan_extents(list(new.values()), grid)
     return out

@@ -49,6 +49,7 @@ from octolgp.gp.learning import learn_hyperparameters
 from octolgp.mapping.bootstrap import Bootstrap
 from octolgp.mapping.correction import (
     JournalExtents,
+    Replay,
     check_corrections,
     moved_extents,
     plan_replay,
@@ -63,7 +64,7 @@ from octolgp.mapping.evidence import (
 )
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads, leaves_read
-from octolgp.mapping.store import FittingBacking, Leaf, LeafStore, MapStorage
+from octolgp.mapping.store import Leaf, LeafStore, MapStorage
 from octolgp.mapping.update import ScanUpdate
 from octolgp.mapping.workers import Workers, collector_paused
 from octolgp.scan import FloatArray, Scan
@@ -217,14 +218,14 @@ class OnlineMap(MapReads):
                 if path is not None
                 else MapFile.spill(self.config)
             )
-            self.store.attach(FittingBacking(self._file, self._fitted), [])
+            self.store.attach(self._file, [], self._fitted)
 
     def _resume(self, storage: MapStorage) -> None:
         """Take over the state recorded in an opened map file."""
         header = storage.header
         self.hyperparameters = header.hyperparameters
         self.n_scans = header.n_scans
-        self.store.attach(FittingBacking(storage, self._fitted), header.leaf_keys)
+        self.store.attach(storage, header.leaf_keys, self._fitted)
         if self.hyperparameters is None and not header.leaf_keys:
             self._bootstrap = Bootstrap(self.config, storage.scans())  # still collecting
 
@@ -303,11 +304,25 @@ class OnlineMap(MapReads):
 
         with self._reading():
             f = self._file
-            journal = f.scans() if f is not None else iter(self._bootstrap.scans)
             own = None if f is None else f.path
             leaves = self.leaves()  # none while learning: the file keeps the buffered scans
             hp, n = self.hyperparameters, self.n_scans
-            write_map(path, self.config, hp, n, leaves, journal, overwrite=overwrite, own=own)
+            if f is None:
+                journal = enumerate(self._bootstrap.scans, start=1)
+                write_map(path, self.config, hp, n, leaves, journal, overwrite=overwrite)
+            else:
+                write_map(
+                    path,
+                    self.config,
+                    hp,
+                    n,
+                    leaves,
+                    f.journal(f.journal_start),
+                    checkpoints=f.checkpoints,
+                    checkpoint_rows=f.checkpoint_rows(),
+                    overwrite=overwrite,
+                    own=own,
+                )
 
     def close(self) -> None:
         """Release worker threads and the map file; every later call is refused.
@@ -399,14 +414,20 @@ class OnlineMap(MapReads):
         return None if self._file is None else self._file.path
 
     def scans(self) -> Iterator[Scan]:
-        """The inserted scans, in order, from the map file's journal.
+        """The journaled scans, in order: scans ``journal_start + 1`` to ``n_scans``.
 
-        A map without a file keeps only the scans it is still buffering.
+        A map file's journal keeps every scan, or with ``OnlineConfig.journal_scans``
+        the latest ones; a map without a file keeps only the scans it is still buffering.
         """
         self._check("scans")
         if self._file is not None:
-            return self._file.scans()
+            return self._file.scans(self._file.journal_start)
         return iter(list(self._bootstrap.scans))
+
+    @property
+    def journal_start(self) -> int:
+        """:meth:`scans` begins after this scan (0: with the first)."""
+        return 0 if self._file is None else self._file.journal_start
 
     @property
     def provisional(self) -> bool:
@@ -611,11 +632,16 @@ class OnlineMap(MapReads):
         if not keys or self.hyperparameters is None:  # nothing to fit with while learning
             return 0
         with collector_paused():
-            leaves = [leaf for k in keys if (leaf := self.store.get(k)) is not None]
-            assert len(leaves) == len(keys)  # pending leaves stay in RAM: no file to evict to
-            fits = self._fit(leaves)
-            self._write([(k, f.leaf) for k, f in zip(keys, fits, strict=True)])
-        return len(keys)
+            found = [(k, leaf) for k in keys if (leaf := self.store.get(k)) is not None]
+            fits = self._fit([leaf for _, leaf in found])
+            fitted = [(k, f.leaf) for (k, _), f in zip(found, fits, strict=True)]
+            if self._file is None:
+                self._write(fitted)
+            else:  # the file keeps their evidence, which has not changed: values live in RAM
+                self.store.apply(fitted)
+                self.store.persisted([k for k, _ in fitted])
+                self.store.trim()
+        return len(found)
 
     @_step_of_state
     def correct_scans(self, corrections: Mapping[int, ArrayLike]) -> ScanUpdate:
@@ -653,20 +679,19 @@ class OnlineMap(MapReads):
         old, new = self._corrected_scans(corrections)
         storage = self._file
         assert storage is not None  # _corrected_scans refuses a map without a journal
-        extents = self._extents.read(storage, self.n_scans)  # read before any write
+        start, extents = self._extents.read(storage, self.n_scans)  # read before any write
         if self.hyperparameters is None:  # still buffering: only the journal moves
             self._write([], corrected=list(new.items()))
             self._bootstrap.corrected(new)
-            self._extents.replace(moved_extents(extents, new, self.grid))
+            self._extents.replace(moved_extents(extents, start, new, self.grid))
             return self._buffered_update(t0)
         stages: dict[str, float] = {}
         # 1. the leaves either version reaches, and every scan whose extent reaches them
         with self._workers.one_blas_thread():
-            replay = plan_replay(storage, extents, old, new, self.engine, stages)
-            # 2. their evidence from nothing, the corrected scans replayed in time order
-            gathered, _, new_items = gather_batch(
-                replay.scans, self.engine, lambda _: None, CHUNK_BEAMS, stages
-            )
+            replay = plan_replay(storage, start, extents, old, new, self.engine, stages)
+            # 2. their evidence as of the journal's start, the corrected scans replayed on
+            # it in time order (and kept as of each later checkpoint)
+            gathered, checkpointed, new_items = self._replay(storage, replay, stages)
         keys = [k for k in replay.affected if k in gathered]
         removed = [k for k in replay.affected if k not in gathered and k in self.store]
         leaves = [gathered[k] for k in keys]
@@ -676,7 +701,13 @@ class OnlineMap(MapReads):
         # 3. the one write: store, then the file in one transaction, then the sink
         t = time.perf_counter()
         fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
-        self._write(fitted, stamp=self.n_scans, removed=removed, corrected=list(new.items()))
+        self._write(
+            fitted,
+            stamp=self.n_scans,
+            removed=removed,
+            corrected=list(new.items()),
+            checkpointed=checkpointed,
+        )
         self._extents.replace(replay.extents)
         stages["store"] = time.perf_counter() - t
         stages["replayed_scans"] = float(len(replay.scans))
@@ -686,11 +717,52 @@ class OnlineMap(MapReads):
         self.sink.on_update(update, self._change(fitted, tuple(removed)))
         return update
 
+    def _replay(
+        self, storage: MapStorage, replay: Replay, stages: dict[str, float]
+    ) -> tuple[dict[int, Leaf], dict[int, dict[int, Leaf | None]], int]:
+        """The affected leaves rebuilt: their state at the journal's start, then its scans.
+
+        Returns the rebuilt leaves (unfitted; a leaf left out has no evidence), their
+        state at each checkpoint after the start (``None``: no leaf then) and the
+        training items gathered.
+        """
+        checkpoints = storage.checkpoints
+        start = checkpoints[0]
+        base = storage.checkpoint_leaves(start, replay.affected) if start else {}
+        state: dict[int, Leaf | None] = {}
+        for k in replay.affected:  # one iteration per affected leaf
+            state[k] = base[k] if k in base else (self.store.get(k) if start else None)
+        checkpointed: dict[int, dict[int, Leaf | None]] = {}
+        items = 0
+        bounds = [c for c in checkpoints[1:] if c < self.n_scans] + [self.n_scans]
+        lo = 0
+        for c in bounds:  # one stretch of the journal per iteration, up to a checkpoint
+            hi = int(np.searchsorted(replay.numbers, c, side="right"))
+            if hi > lo:
+                gathered, _, n = gather_batch(
+                    replay.scans[lo:hi], self.engine, state.get, CHUNK_BEAMS, stages
+                )
+                state.update(gathered)
+                items += n
+            lo = hi
+            if c < self.n_scans:
+                checkpointed[c] = dict(state)
+        rebuilt = {k: leaf for k, leaf in state.items() if leaf is not None}
+        return rebuilt, checkpointed, items
+
     def _corrected_scans(
         self, corrections: Mapping[int, ArrayLike]
     ) -> tuple[dict[int, Scan], dict[int, Scan]]:
         """The journaled scans a correction moves, before and after (checked; reads only)."""
         transforms = check_corrections(corrections, self.n_scans, self.config.dim)
+        start = 0 if self._file is None else self._file.journal_start
+        folded = [i for i in transforms if i <= start]
+        if folded:
+            raise OctolgpError(
+                f"corrections[{folded[0]}]: scan {folded[0]} is older than the journal, which "
+                f"keeps scans {start + 1} to {self.n_scans} (OnlineConfig.journal_scans = "
+                f"{self.config.online.journal_scans}); its evidence is folded into the map"
+            )
         if self._file is None:
             raise OctolgpError(
                 "correct_scans needs the scans' journal: make the map with a path "
@@ -892,6 +964,7 @@ class OnlineMap(MapReads):
         n_scans: int | None = None,
         removed: list[int] | None = None,
         corrected: list[tuple[int, Scan]] | None = None,
+        checkpointed: dict[int, dict[int, Leaf | None]] | None = None,
     ) -> None:
         """Write one step's result: the map file in one transaction, then the store.
 
@@ -914,6 +987,8 @@ class OnlineMap(MapReads):
             Leaves left without evidence (a correction).
         corrected : list of (int, Scan), optional
             Journal rows rewritten (a correction).
+        checkpointed : dict, optional
+            A correction's rebuilt leaves as of each checkpoint after the journal's start.
         """
         journal, removed, corrected = journal or [], removed or [], corrected or []
         written: list[int] = []
@@ -922,7 +997,7 @@ class OnlineMap(MapReads):
                 for _, leaf in leaves:  # one iteration per new leaf
                     leaf.touched = stamp
             if corrected or removed:
-                written = self._file.correct(leaves, removed, corrected)
+                written = self._file.correct(leaves, removed, corrected, checkpointed)
             else:
                 count = self.n_scans if n_scans is None else n_scans
                 written = self._file.commit(leaves, journal, self.hyperparameters, count)

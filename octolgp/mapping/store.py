@@ -13,7 +13,7 @@ around it is a pure function.
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -164,37 +164,11 @@ class LeafBacking(Protocol):
     """Where evicted leaves live: the map file (:class:`octolgp.persist.mapfile.MapFile`)."""
 
     def read_leaf(self, key: int) -> Leaf:
-        """The persisted leaf ``key``."""
+        """The persisted leaf ``key``.
+
+        ``pending`` and without values where the file keeps only its evidence.
+        """
         ...
-
-    def read_leaves(self, keys: list[int]) -> list[Leaf]:
-        """The persisted leaves ``keys``, in order."""
-        ...
-
-
-class FittingBacking:
-    """A backing whose leaves come back with their voxel values.
-
-    A map file keeps only the evidence of an engine whose values are a function of it
-    (:attr:`octolgp.engines.base.LeafEngine.values_from_evidence`); such a leaf reads
-    back ``pending`` and ``fit`` gives it its values as it is read.
-    """
-
-    def __init__(self, backing: LeafBacking, fit: Callable[[list[Leaf]], list[Leaf]]) -> None:
-        self._backing = backing
-        self._fit = fit
-
-    def read_leaf(self, key: int) -> Leaf:
-        """The persisted leaf ``key``, fitted if it was stored without its values."""
-        return self.read_leaves([key])[0]
-
-    def read_leaves(self, keys: list[int]) -> list[Leaf]:
-        """The persisted leaves ``keys``, in order; those stored without values fitted at once."""
-        leaves = self._backing.read_leaves(keys)
-        bare = [j for j, leaf in enumerate(leaves) if leaf.pending]
-        for j, leaf in zip(bare, self._fit([leaves[j] for j in bare]), strict=True):
-            leaves[j] = leaf
-        return leaves
 
 
 @dataclass(frozen=True)
@@ -210,12 +184,22 @@ class MapHeader:
         Scans inserted.
     leaf_keys : list of int
         Packed keys of the persisted leaves.
+    checkpoints : list of int
+        Scan counts at which the file keeps the evidence of the leaves changed since
+        (``OnlineConfig.journal_scans``), ascending; the journal holds the scans after
+        the first (after scan 0 where there is none).
     """
 
     config: MapConfig
     hyperparameters: Hyperparameters | None
     n_scans: int
     leaf_keys: list[int]
+    checkpoints: list[int] = field(default_factory=list)
+
+    @property
+    def journal_start(self) -> int:
+        """The journal holds the scans after this one."""
+        return self.checkpoints[0] if self.checkpoints else 0
 
 
 class MapStorage(LeafBacking, Protocol):
@@ -229,12 +213,30 @@ class MapStorage(LeafBacking, Protocol):
     read_only: bool
     temporary: bool
 
+    @property
+    def checkpoints(self) -> list[int]:
+        """Scan counts at which the file keeps the leaves changed since, ascending."""
+        ...
+
+    @property
+    def journal_start(self) -> int:
+        """The journal holds the scans after this one."""
+        ...
+
     def transaction(self) -> AbstractContextManager[object]:
         """One write transaction that the writes inside it join (all or nothing)."""
         ...
 
     def scans(self, start: int = 0) -> Iterator[Scan]:
         """The journaled scans with index > ``start``, in order."""
+        ...
+
+    def journal(self, start: int = 0) -> Iterator[tuple[int, Scan]]:
+        """``(number, scan)`` of the journaled scans with number > ``start``, in order."""
+        ...
+
+    def checkpoint_rows(self) -> Iterator[tuple[int, int, bytes | None]]:
+        """Every ``(checkpoint, key, record)`` the file keeps (``None``: no leaf then)."""
         ...
 
     def read_scans(self, indices: list[int]) -> dict[int, Scan]:
@@ -256,10 +258,19 @@ class MapStorage(LeafBacking, Protocol):
         leaves: Iterable[tuple[int, Leaf]],
         removed: Iterable[int],
         journal: Iterable[tuple[int, Scan]],
+        checkpointed: Mapping[int, Mapping[int, Leaf | None]] | None = None,
     ) -> list[int]:
         """Replace leaves, delete ``removed`` and rewrite journaled scans, all or nothing.
 
-        Returns the leaf keys written.
+        ``checkpointed``: per later checkpoint, the rebuilt evidence of leaves as of it
+        (``None``: no leaf then). Returns the leaf keys written.
+        """
+        ...
+
+    def checkpoint_leaves(self, checkpoint: int, keys: list[int]) -> dict[int, Leaf | None]:
+        """The leaves ``keys`` as of a checkpoint, where they changed since.
+
+        ``None``: no leaf then; a key left out is unchanged since (the leaf as it is now).
         """
         ...
 
@@ -288,12 +299,25 @@ class LeafStore:
         self._nbytes = 0
         self.budget_bytes = budget_bytes
         self.backing: LeafBacking | None = None
+        self._fit: Callable[[list[Leaf]], list[Leaf]] | None = None
         self.loads = 0
         self.evictions = 0
 
-    def attach(self, backing: LeafBacking, keys: Iterable[int]) -> None:
-        """Use ``backing`` for the persisted leaves ``keys`` (not loaded now)."""
+    def attach(
+        self,
+        backing: LeafBacking,
+        keys: Iterable[int],
+        fit: Callable[[list[Leaf]], list[Leaf]] | None = None,
+    ) -> None:
+        """Use ``backing`` for the persisted leaves ``keys`` (not loaded now).
+
+        ``fit`` gives values to leaves the backing returns without them (``pending``:
+        a map file keeps only the evidence of an engine whose values are a function of
+        it): a leaf :meth:`get` loads stays pending until the map settles it, one that
+        :meth:`peek` or :meth:`items` reads is fitted as it is read.
+        """
         self.backing = backing
+        self._fit = fit
         self._keys.update(int(k) for k in keys)
 
     def __len__(self) -> int:
@@ -319,6 +343,8 @@ class LeafStore:
         size = self._sizes[key] = leaf.nbytes
         self._nbytes += size
         self.loads += 1
+        if leaf.pending:  # read without its values: fitted when the map is next read
+            self._pending.add(key)
         return leaf
 
     def peek(self, key: int) -> Leaf | None:
@@ -327,7 +353,15 @@ class LeafStore:
         leaf = self._leaves.get(key)
         if leaf is not None or key not in self._keys or self.backing is None:
             return leaf
-        return self.backing.read_leaf(key)
+        return self._with_values([self.backing.read_leaf(key)])[0]
+
+    def _with_values(self, leaves: list[Leaf]) -> list[Leaf]:
+        """Leaves read from the backing, those read without values fitted (in one call)."""
+        bare = [j for j, leaf in enumerate(leaves) if leaf.pending]
+        if bare and self._fit is not None:
+            for j, leaf in zip(bare, self._fit([leaves[j] for j in bare]), strict=True):
+                leaves[j] = leaf
+        return leaves
 
     def apply(
         self,
@@ -431,7 +465,8 @@ class LeafStore:
             found = {k: leaf for k in batch if (leaf := self._leaves.get(k)) is not None}
             missing = [k for k in batch if k not in found]
             if missing and self.backing is not None:
-                found.update(zip(missing, self.backing.read_leaves(missing), strict=True))
+                read = self._with_values([self.backing.read_leaf(k) for k in missing])
+                found.update(zip(missing, read, strict=True))
             for key in batch:  # one iteration per leaf
                 if key in found:
                     yield key, found[key]

@@ -48,7 +48,7 @@ import sqlite3
 import struct
 import tempfile
 import zlib
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
@@ -87,6 +87,10 @@ _FOREIGN = 4  # flag: the stored values are not the engine's fit of the evidence
 _COUNT = struct.Struct("<q")
 _COUNTS = struct.Struct("<q")  # record 2: halo voxels of the count arrays
 _SCAN_COLUMNS = "idx, dim, origin, points, max_range, stamp"
+_CHECKPOINT_TABLE = (
+    "CREATE TABLE checkpoint_leaves(checkpoint INTEGER NOT NULL, key INTEGER NOT NULL, "
+    "data BLOB, PRIMARY KEY (checkpoint, key)) WITHOUT ROWID"
+)
 _STEPS = 1  # a journal row's codec: the steps of a rounded scan (octolgp.persist.journal)
 
 
@@ -382,6 +386,10 @@ class MapFile:
         self._engine = engine_for(header.config)
         self._grid = LeafGrid.from_config(header.config)
         self._depth = 0  # open write transactions (nested ones join the outer)
+        self._n_scans = header.n_scans
+        self._checkpoint_table = _has_table(con, "checkpoint_leaves")
+        self._checkpoints = list(header.checkpoints) or [0]
+        self._window = header.config.online.journal_scans
         self._wrote = created  # a writer that wrote leaves the file in rollback-journal mode
         self._crc_column, self._codec_column = _scan_columns(con)
         self._precision = header.config.online.scan_precision
@@ -420,12 +428,14 @@ class MapFile:
                 "origin BLOB NOT NULL, points BLOB NOT NULL, max_range REAL, stamp REAL, "
                 "crc INTEGER, codec INTEGER)"
             )
+            con.execute(_CHECKPOINT_TABLE)
             rows = [
                 ("format", FORMAT),
                 ("version", str(VERSION)),
                 ("config", json.dumps(config.to_dict())),
                 ("hyperparameters", _hp_json(hyperparameters)),
                 ("n_scans", str(n_scans)),
+                ("checkpoints", "[0]"),
             ]
             con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
             for k, leaf in leaves:  # one row per leaf
@@ -436,7 +446,7 @@ class MapFile:
             lock.release()
             _remove(p)
             raise OctolgpError(f"path {str(p)!r}: cannot create the map file ({exc})") from None
-        header = MapHeader(config, hyperparameters, n_scans, keys)
+        header = MapHeader(config, hyperparameters, n_scans, keys, [0])
         return cls(p, con, header, lock=lock, temporary=temporary, created=True)
 
     @classmethod
@@ -496,6 +506,16 @@ class MapFile:
             raise
 
     # ------------------------------------------------------------------ reads
+    @property
+    def checkpoints(self) -> list[int]:
+        """Scan counts at which the file keeps the leaves changed since, ascending."""
+        return list(self._checkpoints)
+
+    @property
+    def journal_start(self) -> int:
+        """The journal holds the scans after this one (a correction reaches them)."""
+        return self._checkpoints[0]
+
     def read_leaf(self, key: int) -> Leaf:
         """The persisted leaf ``key``.
 
@@ -518,20 +538,50 @@ class MapFile:
             raise OctolgpError(f"map file {str(self.path)!r}, leaf {key}: {exc}") from None
         return leaf
 
-    def read_leaves(self, keys: list[int]) -> list[Leaf]:
-        """The persisted leaves ``keys``, in order (:meth:`read_leaf` of each)."""
-        return [self.read_leaf(k) for k in keys]
-
     def scans(self, start: int = 0) -> Iterator[Scan]:
         """The journaled scans with index > ``start``, in order."""
+        for _, scan in self.journal(start):  # one scan per row
+            yield scan
+
+    def journal(self, start: int = 0) -> Iterator[tuple[int, Scan]]:
+        """``(number, scan)`` of the journaled scans with number > ``start``, in order."""
         try:
             cur = self._con.execute(
                 f"SELECT {self._scan_select} FROM scans WHERE idx > ? ORDER BY idx", (start,)
             )
             for row in cur:  # one scan per row
-                yield _row_scan(row)
+                yield int(row[0]), _row_scan(row)
         except (sqlite3.Error, OctolgpError, ValueError, TypeError, ZeroDivisionError) as exc:
             raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
+
+    def checkpoint_rows(self) -> Iterator[tuple[int, int, bytes | None]]:
+        """Every ``(checkpoint, key, record)`` the file keeps (``None``: no leaf then)."""
+        if not self._checkpoint_table:
+            return
+        try:
+            cur = self._con.execute("SELECT checkpoint, key, data FROM checkpoint_leaves")
+            for c, key, data in cur:  # one row per kept leaf
+                yield int(c), int(key), data
+        except sqlite3.Error as exc:
+            raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
+
+    def _history(
+        self,
+        journal: Iterable[tuple[int, Scan]],
+        checkpoints: list[int],
+        rows: Iterable[tuple[int, int, bytes | None]],
+    ) -> None:
+        """Write a journal and checkpoints as another file kept them (a copy of a map)."""
+        with self.transaction() as con:
+            con.executemany(
+                f"INSERT INTO scans({_SCAN_COLUMNS}, crc, codec) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                (_scan_row(i, s, self._precision) for i, s in journal),
+            )
+            con.executemany("INSERT INTO checkpoint_leaves VALUES (?, ?, ?)", rows)
+            con.execute(
+                "UPDATE meta SET value=? WHERE key='checkpoints'", (json.dumps(checkpoints),)
+            )
+        self._checkpoints = list(checkpoints)
 
     def read_scans(self, indices: list[int]) -> dict[int, Scan]:
         """The journaled scans with these numbers (absent numbers are left out)."""
@@ -587,6 +637,10 @@ class MapFile:
             if not self._codec_column:  # a file from before compact journals, too
                 con.execute("ALTER TABLE scans ADD COLUMN codec INTEGER")
                 self._codec_column = True
+            if not self._checkpoint_table:  # and checkpoints
+                con.execute(_CHECKPOINT_TABLE)
+                con.execute("INSERT OR IGNORE INTO meta VALUES ('checkpoints', '[0]')")
+                self._checkpoint_table = True
             con.execute("UPDATE meta SET value=? WHERE key='version'", (str(VERSION),))
             yield con
             con.execute("COMMIT")
@@ -596,6 +650,7 @@ class MapFile:
                 with suppress(sqlite3.Error):  # a failed commit may have rolled back already
                     con.execute("ROLLBACK")
             self._crc_column, self._codec_column = _scan_columns(con)
+            self._checkpoint_table = _has_table(con, "checkpoint_leaves")
             if isinstance(exc, sqlite3.Error):
                 raise self._failed(exc) from None
             raise
@@ -621,11 +676,13 @@ class MapFile:
         """
         written = []
         engine = self._engine
+        leaves = list(leaves)
         with self.transaction() as con:
             con.executemany(
                 f"INSERT INTO scans({_SCAN_COLUMNS}, crc, codec) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
                 (_scan_row(i, s, self._precision) for i, s in journal),
             )
+            self._keep_checkpoint(con, [k for k, _ in leaves])
             for k, leaf in leaves:  # one row per changed leaf
                 con.execute(
                     "INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine))
@@ -635,22 +692,111 @@ class MapFile:
                 "UPDATE meta SET value=? WHERE key='hyperparameters'", (_hp_json(hyperparameters),)
             )
             con.execute("UPDATE meta SET value=? WHERE key='n_scans'", (str(n_scans),))
+            checkpoints = self._advance(con, n_scans, hyperparameters)
+        self._n_scans, self._checkpoints = n_scans, checkpoints
         return written
+
+    def _keep_checkpoint(
+        self, con: sqlite3.Connection, keys: list[int], skip: Iterable[int] = ()
+    ) -> None:
+        """Before leaves change: keep their rows as of every checkpoint, once each.
+
+        A leaf without a row for a checkpoint is unchanged since, so its row now is its
+        state then (none: no leaf then). Checkpoint 0 is the empty map; ``skip``:
+        checkpoints whose rows the caller writes.
+        """
+        skipped = {0, *skip}
+        for c in self._checkpoints:  # at most three: the journal's start and later ones
+            if self._window is None or c in skipped or not keys:
+                continue
+            con.executemany(
+                "INSERT OR IGNORE INTO checkpoint_leaves(checkpoint, key, data) "
+                "VALUES (?, ?, (SELECT data FROM leaves WHERE key = ?))",
+                ((c, int(k), int(k)) for k in keys),
+            )
+
+    def _advance(
+        self, con: sqlite3.Connection, n_scans: int, hyperparameters: Hyperparameters | None
+    ) -> list[int]:
+        """Mark a checkpoint every ``journal_scans`` scans and drop what no correction needs.
+
+        The journal keeps the scans after the latest checkpoint at least
+        ``journal_scans`` scans back (none while the map learns: it learns on them).
+        Returns the checkpoints after the step.
+        """
+        window, checkpoints = self._window, list(self._checkpoints)
+        if window is None or hyperparameters is None:
+            return checkpoints
+        if n_scans - checkpoints[-1] >= window:
+            checkpoints.append(n_scans)
+        start = max([c for c in checkpoints if c <= n_scans - window], default=checkpoints[0])
+        checkpoints = [c for c in checkpoints if c >= start]
+        if start > self._checkpoints[0]:
+            con.execute("DELETE FROM scans WHERE idx <= ?", (start,))
+            con.execute("DELETE FROM checkpoint_leaves WHERE checkpoint < ?", (start,))
+        if checkpoints != self._checkpoints:
+            con.execute(
+                "UPDATE meta SET value=? WHERE key='checkpoints'", (json.dumps(checkpoints),)
+            )
+        return checkpoints
+
+    def checkpoint_leaves(self, checkpoint: int, keys: list[int]) -> dict[int, Leaf | None]:
+        """The leaves ``keys`` as of a checkpoint where they changed since.
+
+        ``None``: no leaf then; a key left out is unchanged since the checkpoint.
+        """
+        out: dict[int, Leaf | None] = {}
+        try:
+            for lo in range(0, len(keys), 500):  # bounded IN lists
+                part = [int(k) for k in keys[lo : lo + 500]]
+                cur = self._con.execute(
+                    "SELECT key, data FROM checkpoint_leaves WHERE checkpoint = ? AND key IN "
+                    f"({','.join('?' * len(part))})",
+                    [checkpoint, *part],
+                )
+                for key, data in cur:  # one row per leaf
+                    out[int(key)] = (
+                        None if data is None else decode_leaf(data, self._engine, self._grid)
+                    )
+        except (sqlite3.Error, OctolgpError) as exc:
+            raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
+        return out
 
     def correct(
         self,
         leaves: Iterable[tuple[int, Leaf]],
         removed: Iterable[int],
         journal: Iterable[tuple[int, Scan]],
+        checkpointed: Mapping[int, Mapping[int, Leaf | None]] | None = None,
     ) -> list[int]:
         """Apply a pose correction in one transaction: a kill leaves the map before or after.
 
         Replaces the journaled scans ``journal`` (by number) and the leaves ``leaves``,
-        and deletes the leaves ``removed``. Returns the leaf keys written.
+        and deletes the leaves ``removed``. ``checkpointed``: per checkpoint after the
+        journal's start, the rebuilt leaves as of it (``None``: no leaf then); at the
+        latest checkpoint, if not among them, the leaves' rows are kept as a step keeps
+        them. Returns the leaf keys written.
         """
         written = []
         engine = self._engine
+        leaves, removed = list(leaves), [int(k) for k in removed]
+        checkpointed = checkpointed or {}
         with self.transaction() as con:
+            for c, rows in checkpointed.items():  # one checkpoint per iteration
+                con.executemany(
+                    "INSERT OR REPLACE INTO checkpoint_leaves VALUES (?, ?, ?)",
+                    (
+                        (c, int(k), None if leaf is None else encode_leaf(leaf, engine))
+                        for k, leaf in rows.items()
+                    ),
+                )
+            keys = [k for k, _ in leaves] + removed
+            if self._checkpoints[-1] == self._n_scans:  # the rebuilt rows are its state
+                con.executemany(
+                    "DELETE FROM checkpoint_leaves WHERE checkpoint = ? AND key = ?",
+                    ((self._n_scans, int(k)) for k in keys),
+                )
+            self._keep_checkpoint(con, keys, skip=[*checkpointed, self._n_scans])
             for i, s in journal:  # one row per corrected scan
                 row = _scan_row(i, s, self._precision)
                 con.execute(
@@ -688,6 +834,12 @@ class MapFile:
             _remove(self.path)
 
 
+def _has_table(con: sqlite3.Connection, name: str) -> bool:
+    """Whether the database has the table ``name``."""
+    row = con.execute("SELECT 1 FROM sqlite_master WHERE type='table' AND name=?", (name,))
+    return row.fetchone() is not None
+
+
 def _scan_columns(con: sqlite3.Connection) -> tuple[bool, bool]:
     """Whether the journal table has the ``crc`` and the ``codec`` columns."""
     names = {r[1] for r in con.execute("PRAGMA table_info(scans)")}
@@ -713,13 +865,16 @@ def _read_header(p: Path, con: sqlite3.Connection) -> MapHeader:
         n_scans = int(meta["n_scans"])
         keys = [int(k) for (k,) in con.execute("SELECT key FROM leaves")]
         journal = int(con.execute("SELECT COUNT(*) FROM scans").fetchone()[0])
+        checkpoints = [int(c) for c in json.loads(meta.get("checkpoints", "[0]"))]
     except (sqlite3.Error, OctolgpError, KeyError, ValueError, TypeError) as exc:
         raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
-    if journal not in (0, n_scans):  # 0: saved from memory, without a journal
+    if not checkpoints or checkpoints != sorted(checkpoints) or checkpoints[-1] > n_scans:
+        raise OctolgpError(f"map file {str(p)!r} is corrupt: checkpoints {checkpoints}")
+    if journal not in (0, n_scans - checkpoints[0]):  # 0: saved from memory, no journal
         raise OctolgpError(
             f"map file {str(p)!r} is corrupt: {journal} journaled scans, n_scans {n_scans}"
         )
-    return MapHeader(config, hp, n_scans, keys)
+    return MapHeader(config, hp, n_scans, keys, checkpoints)
 
 
 def _remove(p: Path) -> None:
@@ -757,8 +912,10 @@ def write_map(
     hyperparameters: Hyperparameters | None,
     n_scans: int,
     leaves: Iterable[tuple[int, Leaf]],
-    scans: Iterable[Scan] = (),
+    journal: Iterable[tuple[int, Scan]] = (),
     *,
+    checkpoints: list[int] | None = None,
+    checkpoint_rows: Iterable[tuple[int, int, bytes | None]] = (),
     overwrite: bool = False,
     own: Path | None = None,
 ) -> None:
@@ -773,8 +930,11 @@ def write_map(
         The map's state.
     leaves : iterable of (int, Leaf)
         Every leaf, by packed key.
-    scans : iterable of Scan
-        The journal (scans 1, 2, ...): all ``n_scans`` of them, or none.
+    journal : iterable of (int, Scan)
+        The journal: scans by number, those after the first checkpoint, or none.
+    checkpoints, checkpoint_rows
+        The checkpoints (``[0]`` when omitted) and the leaves kept as of them
+        (:meth:`MapFile.checkpoint_rows`).
     overwrite : bool
         Replace an existing file.
     own : Path, optional
@@ -791,7 +951,7 @@ def write_map(
     try:
         f = MapFile.create(tmp, config, hyperparameters, n_scans, leaves)
         try:
-            f.commit([], enumerate(scans, start=1), hyperparameters, n_scans)
+            f._history(journal, checkpoints or [0], checkpoint_rows)
         finally:
             f.close()
         for suffix in ("-wal", "-shm"):  # a killed writer's log must not meet the new file

@@ -1,0 +1,183 @@
+"""Bytes a map file holds per scan and per observed voxel: leaves, journal, checkpoints.
+
+Figures: BENCHMARKS.md, "Map file size".
+
+Scenes (default config unless ``--set`` says otherwise, each map written with a path):
+
+- ``street64``: the simulated street, a 64 x 1024 lidar (-24.9°..2°) to 80 m with 2 cm
+  range noise, ``--scans`` scans 1 m apart from 100 m along the route, each through
+  ``Scan.downsample(0.2)`` (the car-lidar case: about 19,000 beams a scan); 0.2 m voxels,
+  hyperparameters given (length scale 0.8 m) so that every scan is mapped;
+- ``intel``: the Intel log shipped in the repository's tests (20 scans) or, with
+  ``--intel-log``, another CARMEN log; 0.1 m, hyperparameters learnt as a user gets them.
+
+Per scene the table gives, after the last scan: the file's bytes (after closing: the
+write-ahead log folded in), the leaf records' bytes and the journal's, both per scan and
+per observed voxel (a voxel some scan saw, counted once, in its own leaf), the bytes the
+same leaves and scans take in the encoding of file version 4 (every voxel value stored,
+the evidence and the journal in float64), and the median insert time. ``--window N``
+adds a run with ``OnlineConfig.journal_scans = N``.
+
+    .venv/bin/python tools/bench_file_size.py --scans 40 --window 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sqlite3
+import statistics
+import struct
+import tempfile
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan, load_scans
+from octolgp.cli.configs import apply_overrides
+from octolgp.engines import engine_for
+from octolgp.engines.lattice import LatticeEvidence
+from octolgp.mapping.grid import LeafGrid
+from octolgp.persist.mapfile import MapFile
+from octolgp.sim.mission import simulate_mission3d
+
+ROOT = Path(__file__).resolve().parents[1]
+INTEL = ROOT / "tests" / "data" / "intel_first20.log"
+HP3 = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+_V4_HEADER = 40  # record 4: magic, version, dim, values, pruned, refits, touched
+
+
+def street_scans(n: int) -> list[Scan]:
+    """The 64-ring street, filtered at 0.2 m."""
+    mission = simulate_mission3d(
+        1000.0,
+        seed=0,
+        spacing=1.0,
+        n_azimuth=1024,
+        n_elevation=64,
+        fov_down=-24.9,
+        fov_up=2.0,
+        max_range=80.0,
+        range_noise=0.02,
+    )
+    return [mission.scan(100 + k).downsample(0.2) for k in range(n)]
+
+
+def v4_bytes(path: Path) -> tuple[int, int]:
+    """Bytes of the file's leaves and journal in the encoding of file version 4."""
+    with MapFile.open(path, read_only=True) as f:
+        engine = engine_for(f.header.config)
+        grid = LeafGrid.from_config(f.header.config)
+        leaves = 0
+        for key in f.header.leaf_keys:  # one leaf per iteration
+            ev = f.read_leaf(key).evidence
+            voxels = grid.voxels_per_leaf
+            leaves += _V4_HEADER + 8 * grid.dim + 12 * voxels + len(engine.encode(ev)) + 4
+        journal = sum(8 * s.dim + 24 * len(s) for s in f.scans(f.journal_start))
+    return leaves, journal
+
+
+def observed_voxels(path: Path) -> int:
+    """Voxels with a count in their own leaf (each observed voxel once)."""
+    with MapFile.open(path, read_only=True) as f:
+        grid = LeafGrid.from_config(f.header.config)
+        side, halo, d = grid.side, grid.halo_voxels, grid.dim
+        box = side + 2 * halo
+        own = np.zeros((box,) * d, dtype=bool)
+        own[(slice(halo, halo + side),) * d] = True
+        own = own.ravel(order="F")
+        total = 0
+        for key in f.header.leaf_keys:  # one leaf per iteration
+            ev = f.read_leaf(key).evidence
+            if isinstance(ev, LatticeEvidence) and ev.counts.shape[1] == own.size:
+                total += int(np.count_nonzero((ev.counts.sum(axis=0) > 0) & own))
+    return total
+
+
+def table_bytes(path: Path) -> dict[str, int]:
+    """Payload bytes per table (records, not SQLite pages)."""
+    con = sqlite3.connect(f"file:{path}?mode=ro", uri=True)
+    try:
+        leaves = con.execute("SELECT COALESCE(SUM(LENGTH(data)), 0) FROM leaves").fetchone()[0]
+        journal = con.execute(
+            "SELECT COALESCE(SUM(LENGTH(points) + LENGTH(origin)), 0), COUNT(*) FROM scans"
+        ).fetchone()
+        kept = con.execute(
+            "SELECT COALESCE(SUM(LENGTH(data)), 0) FROM checkpoint_leaves"
+        ).fetchone()[0]
+    finally:
+        con.close()
+    return {"leaves": leaves, "journal": journal[0], "journaled": journal[1], "kept": kept}
+
+
+def run(name: str, scans: list[Scan], config: MapConfig, folder: Path) -> dict[str, float]:
+    """Map the scans into a new file; sizes and the median insert time."""
+    path = folder / f"{name}.octolgp"
+    times = []
+    with OnlineMap(config, path=path) as m:
+        for scan in scans:  # one insert per iteration
+            t = time.perf_counter()
+            m.insert_scan(scan)
+            times.append(time.perf_counter() - t)
+        n = m.n_scans
+    sizes = table_bytes(path)
+    old_leaves, old_journal = v4_bytes(path)
+    voxels = observed_voxels(path)
+    return {
+        "scans": n,
+        "file": path.stat().st_size,
+        **sizes,
+        "v4_leaves": old_leaves,
+        "v4_journal": old_journal,
+        "voxels": voxels,
+        "points": sum(len(s) for s in scans) / len(scans),
+        "insert": statistics.median(times[1:] or times),
+    }
+
+
+def main() -> None:
+    """Print the table."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scans", type=int, default=20, help="street scans (default 20)")
+    parser.add_argument(
+        "--window", type=int, default=None, help="also OnlineConfig.journal_scans=N"
+    )
+    parser.add_argument("--intel-log", type=Path, default=INTEL, help="a CARMEN log (tests' Intel)")
+    parser.add_argument("--set", action="append", default=[], help="config override KEY=VALUE")
+    args = parser.parse_args()
+    scenes = {
+        "street64": (
+            street_scans(args.scans),
+            MapConfig(dim=3, resolution=0.2, hyperparameters=HP3),
+        ),
+        "intel": (list(load_scans(args.intel_log)), MapConfig(dim=2, resolution=0.1)),
+    }
+    print(
+        "| scene | journal_scans | scans | points a scan | file MB | leaves B / observed voxel "
+        "(v4) | journal kB / scan (v4) | journaled scans | checkpoint kB | median insert s |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, (scans, config) in scenes.items():
+            config = apply_overrides(config, args.set) if args.set else config
+            for window in (None, args.window) if args.window else (None,):
+                online = dataclasses.replace(config.online, journal_scans=window)
+                r = run(
+                    f"{name}-{window}", scans, dataclasses.replace(config, online=online), Path(tmp)
+                )
+                per_voxel = r["leaves"] / max(r["voxels"], 1)
+                old_voxel = r["v4_leaves"] / max(r["voxels"], 1)
+                journal = r["journal"] / r["journaled"] / 1e3 if r["journaled"] else 0.0
+                old_journal = r["v4_journal"] / r["journaled"] / 1e3 if r["journaled"] else 0.0
+                print(
+                    f"| {name} | {window} | {r['scans']} | {r['points']:.0f} | "
+                    f"{r['file'] / 1e6:.2f} | {per_voxel:.2f} ({old_voxel:.1f}) | "
+                    f"{journal:.1f} ({old_journal:.1f}) | {r['journaled']} | "
+                    f"{r['kept'] / 1e3:.0f} | {r['insert']:.3f} |"
+                )
+
+
+if __name__ == "__main__":
+    main()
