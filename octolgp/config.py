@@ -371,9 +371,9 @@ class OnlineConfig:
         since, its evidence as of the checkpoint; scans before the oldest checkpoint a
         correction may need are dropped from the journal (their evidence stays in the
         leaves and the checkpoint), so the journal holds between this many and twice
-        this many scans and a correction reaches at least the latest this many. A
-        correction of an older scan is refused. ``None``: every scan is kept. Default
-        None.
+        this many scans and a correction reaches at least the latest this many (100 s
+        of a 10 Hz lidar at the default). A correction of an older scan is refused.
+        ``None``: every scan is kept (files written before this setting). Default 1000.
     """
 
     engine: str = "lattice"
@@ -386,7 +386,7 @@ class OnlineConfig:
     prune: bool | None = None
     defer_fit: bool = True
     scan_precision: float | None = 0.01
-    journal_scans: int | None = None
+    journal_scans: int | None = 1000
 
     def __post_init__(self) -> None:
         if self.engine not in ("lattice", "exact"):

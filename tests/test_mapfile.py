@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import sqlite3
+import struct
 import subprocess
 import sys
 from collections.abc import Callable
@@ -11,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_online import assert_same_map
 
 from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
 from octolgp.cli import main
@@ -494,3 +496,83 @@ def test_a_3d_map_file_of_leaves_of_four_reopens_as_it_was(tmp_path: Path) -> No
     with OnlineMap.open(path) as m:
         assert (m.config.leaf_depth, m.config.tile_voxels) == (14, 4)
         assert _values(m) == after
+
+
+def _write_version_4(path: Path, m: OnlineMap, scans: list) -> None:  # type: ignore[type-arg]
+    """``m`` (unrounded scans) as file version 4 wrote it: every voxel value in record 4,
+    the evidence at full precision, the journal in float64, no checkpoints, and a config
+    without the settings that came later."""
+    import json
+    import zlib
+
+    engine = engine_for(m.config)
+    con = sqlite3.connect(path)
+    con.execute("CREATE TABLE meta(key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+    con.execute("CREATE TABLE leaves(key INTEGER PRIMARY KEY, data BLOB NOT NULL)")
+    con.execute(
+        "CREATE TABLE scans(idx INTEGER PRIMARY KEY, dim INTEGER NOT NULL, origin BLOB NOT NULL, "
+        "points BLOB NOT NULL, max_range REAL, stamp REAL, crc INTEGER)"
+    )
+    stored = m.config.to_dict()
+    stored["online"].pop("scan_precision", None)  # None: to_dict leaves them out anyway
+    stored["online"].pop("journal_scans", None)
+    hp = m.hyperparameters
+    assert hp is not None
+    meta = [
+        ("format", "octolgp-map"),
+        ("version", "4"),
+        ("config", json.dumps(stored)),
+        ("hyperparameters", json.dumps(dataclasses.asdict(hp))),
+        ("n_scans", str(len(scans))),
+    ]
+    con.executemany("INSERT INTO meta VALUES (?, ?)", meta)
+    for k, leaf in m.leaves():
+        head = struct.pack(
+            "<4sBBxxqqqq", b"OLGL", 4, leaf.index.size, leaf.prob.size, int(leaf.pruned),
+            leaf.refits, leaf.touched,
+        )  # fmt: skip
+        parts = [
+            leaf.index.astype("<i8"),
+            *(a.astype("<f4") for a in (leaf.mean, leaf.var, leaf.prob)),
+        ]
+        body = head + b"".join(p.tobytes() for p in parts) + engine.encode(leaf.evidence)
+        con.execute(
+            "INSERT INTO leaves VALUES (?, ?)", (k, body + struct.pack("<I", zlib.crc32(body)))
+        )
+    for i, s in enumerate(scans, start=1):
+        origin, points = s.origin.astype("<f8").tobytes(), s.points.astype("<f8").tobytes()
+        crc = zlib.crc32(
+            points, zlib.crc32(origin, zlib.crc32(f"{s.dim}|{s.max_range!r}|{s.stamp!r}".encode()))
+        )
+        con.execute(
+            "INSERT INTO scans VALUES (?, ?, ?, ?, ?, ?, ?)",
+            (i, s.dim, origin, points, s.max_range, s.stamp, crc),
+        )
+    con.commit()
+    con.close()
+
+
+def test_a_version_4_file_reads_as_written_and_goes_on_in_the_new_records(tmp_path: Path) -> None:
+    """Files of version 4 keep every voxel value and float64 scans: they read back exactly,
+    keep scans as given (no rounding, every scan journaled) and take new scans."""
+    old = dataclasses.replace(
+        CONFIG, online=dataclasses.replace(CONFIG.online, scan_precision=None, journal_scans=None)
+    )
+    scans = _scans()
+    m = OnlineMap(old)
+    m.insert_scans(scans[:6])
+    path = tmp_path / "v4.octolgp"
+    _write_version_4(path, m, scans[:6])
+    with OnlineMap.open(path, read_only=True) as back:
+        assert back.config.online.scan_precision is None
+        assert back.config.online.journal_scans is None
+        assert _values(back) == _values(m)  # the stored values, not refits
+        assert [s.points.tobytes() for s in back.scans()] == [s.points.tobytes() for s in scans[:6]]
+    with OnlineMap.open(path) as back:
+        back.insert_scans(scans[6:10])
+        m.insert_scans(scans[6:10])
+        assert_same_map(back, m)
+        back.correct_scans({3: np.eye(3)})
+    with OnlineMap.open(path, read_only=True) as again:
+        assert_same_map(again, m)
+        assert len(list(again.scans())) == 10

@@ -2,14 +2,15 @@
 
 Figures: BENCHMARKS.md, "Map file size".
 
-Scenes (default config unless ``--set`` says otherwise, each map written with a path):
+Scenes (the default config, each map written with a path):
 
 - ``street64``: the simulated street, a 64 x 1024 lidar (-24.9°..2°) to 80 m with 2 cm
   range noise, ``--scans`` scans 1 m apart from 100 m along the route, each through
   ``Scan.downsample(0.2)`` (the car-lidar case: about 19,000 beams a scan); 0.2 m voxels,
   hyperparameters given (length scale 0.8 m) so that every scan is mapped;
-- ``intel``: the Intel log shipped in the repository's tests (20 scans) or, with
-  ``--intel-log``, another CARMEN log; 0.1 m, hyperparameters learnt as a user gets them.
+- ``intel``: the first ``--intel-scans`` scans of the Intel log the repository ships
+  (``data/intel_lab``); 0.1 m, hyperparameters learnt as a user gets them (on the
+  first 40 scans).
 
 Per scene the table gives, after the last scan: the file's bytes (after closing: the
 write-ahead log folded in), the leaf records' bytes and the journal's, both per scan and
@@ -25,18 +26,16 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import sqlite3
 import statistics
-import struct
 import tempfile
 import time
-import zlib
 from pathlib import Path
 
 import numpy as np
 
 from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan, load_scans
-from octolgp.cli.configs import apply_overrides
 from octolgp.engines import engine_for
 from octolgp.engines.lattice import LatticeEvidence
 from octolgp.mapping.grid import LeafGrid
@@ -44,7 +43,7 @@ from octolgp.persist.mapfile import MapFile
 from octolgp.sim.mission import simulate_mission3d
 
 ROOT = Path(__file__).resolve().parents[1]
-INTEL = ROOT / "tests" / "data" / "intel_first20.log"
+INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"  # shipped with the repository
 HP3 = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
 _V4_HEADER = 40  # record 4: magic, version, dim, values, pruned, refits, touched
 
@@ -65,9 +64,15 @@ def street_scans(n: int) -> list[Scan]:
     return [mission.scan(100 + k).downsample(0.2) for k in range(n)]
 
 
+def intel_scans(n: int) -> list[Scan]:
+    """The first ``n`` scans of the Intel log."""
+    return list(itertools.islice(load_scans(INTEL), n))
+
+
 def v4_bytes(path: Path) -> tuple[int, int]:
     """Bytes of the file's leaves and journal in the encoding of file version 4."""
-    with MapFile.open(path, read_only=True) as f:
+    f = MapFile.open(path, read_only=True)
+    try:
         engine = engine_for(f.header.config)
         grid = LeafGrid.from_config(f.header.config)
         leaves = 0
@@ -76,12 +81,15 @@ def v4_bytes(path: Path) -> tuple[int, int]:
             voxels = grid.voxels_per_leaf
             leaves += _V4_HEADER + 8 * grid.dim + 12 * voxels + len(engine.encode(ev)) + 4
         journal = sum(8 * s.dim + 24 * len(s) for s in f.scans(f.journal_start))
+    finally:
+        f.close()
     return leaves, journal
 
 
 def observed_voxels(path: Path) -> int:
     """Voxels with a count in their own leaf (each observed voxel once)."""
-    with MapFile.open(path, read_only=True) as f:
+    f = MapFile.open(path, read_only=True)
+    try:
         grid = LeafGrid.from_config(f.header.config)
         side, halo, d = grid.side, grid.halo_voxels, grid.dim
         box = side + 2 * halo
@@ -93,6 +101,8 @@ def observed_voxels(path: Path) -> int:
             ev = f.read_leaf(key).evidence
             if isinstance(ev, LatticeEvidence) and ev.counts.shape[1] == own.size:
                 total += int(np.count_nonzero((ev.counts.sum(axis=0) > 0) & own))
+    finally:
+        f.close()
     return total
 
 
@@ -144,29 +154,30 @@ def main() -> None:
     parser.add_argument(
         "--window", type=int, default=None, help="also OnlineConfig.journal_scans=N"
     )
-    parser.add_argument("--intel-log", type=Path, default=INTEL, help="a CARMEN log (tests' Intel)")
-    parser.add_argument("--set", action="append", default=[], help="config override KEY=VALUE")
+    parser.add_argument("--intel-scans", type=int, default=200, help="Intel scans (default 200)")
     args = parser.parse_args()
     scenes = {
         "street64": (
             street_scans(args.scans),
             MapConfig(dim=3, resolution=0.2, hyperparameters=HP3),
         ),
-        "intel": (list(load_scans(args.intel_log)), MapConfig(dim=2, resolution=0.1)),
+        "intel": (intel_scans(args.intel_scans), MapConfig(dim=2, resolution=0.1)),
     }
     print(
         "| scene | journal_scans | scans | points a scan | file MB | leaves B / observed voxel "
-        "(v4) | journal kB / scan (v4) | journaled scans | checkpoint kB | median insert s |"
+        "(v4) | journal kB / scan (v4) | journaled scans | checkpoint kB | record kB added a "
+        "scan, second half | median insert s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:
         for name, (scans, config) in scenes.items():
-            config = apply_overrides(config, args.set) if args.set else config
-            for window in (None, args.window) if args.window else (None,):
+            windows = [config.online.journal_scans]
+            if args.window is not None:
+                windows.append(args.window)
+            for window in windows:  # the default, then --window
                 online = dataclasses.replace(config.online, journal_scans=window)
-                r = run(
-                    f"{name}-{window}", scans, dataclasses.replace(config, online=online), Path(tmp)
-                )
+                cfg = dataclasses.replace(config, online=online)
+                r = run(f"{name}-{window}", scans, cfg, Path(tmp))
                 per_voxel = r["leaves"] / max(r["voxels"], 1)
                 old_voxel = r["v4_leaves"] / max(r["voxels"], 1)
                 journal = r["journal"] / r["journaled"] / 1e3 if r["journaled"] else 0.0
@@ -175,7 +186,8 @@ def main() -> None:
                     f"| {name} | {window} | {r['scans']} | {r['points']:.0f} | "
                     f"{r['file'] / 1e6:.2f} | {per_voxel:.2f} ({old_voxel:.1f}) | "
                     f"{journal:.1f} ({old_journal:.1f}) | {r['journaled']} | "
-                    f"{r['kept'] / 1e3:.0f} | {r['insert']:.3f} |"
+                    f"{r['kept'] / 1e3:.0f} | {r['growth'] / 1e3:.1f} | {r['insert']:.3f} |",
+                    flush=True,
                 )
 
 

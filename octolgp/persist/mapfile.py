@@ -249,8 +249,9 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     fitted each leaf as one tile on a 2D lattice spacing of 0.3, and files from before
     ``lattice.min_inducing_per_axis`` one lattice point per 3 voxels of the halo box at
     least; the config keeps both, files from before ``learning.max_beams`` learnt on
-    every beam, and files from before ``online.scan_precision`` kept scans as given. The other derived fields take the defaults they had when those files
-    were written, which are today's.
+    every beam, and files from before ``online.scan_precision`` kept scans as given and
+    every scan in the journal (``online.journal_scans``). The other derived fields
+    take the defaults they had when those files were written, which are today's.
 
     Raises
     ------
@@ -277,6 +278,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         lattice["min_inducing_per_axis"] = max(2, min(config.max_inducing_per_axis, box // 3))
     if "scan_precision" not in online:
         online["scan_precision"] = None  # scans kept as given, as then
+    if "journal_scans" not in online:
+        online["journal_scans"] = None  # every scan journaled, as then
     learning = stored.setdefault("learning", {})
     if isinstance(learning, dict) and "max_beams" not in learning:
         learning["max_beams"] = None  # learnt on every beam, as then
