@@ -12,12 +12,15 @@ Scenes (the default config, each map written with a path):
   (``data/intel_lab``); 0.1 m, hyperparameters learnt as a user gets them (on the
   first 40 scans).
 
-Per scene the table gives, after the last scan: the file's bytes (after closing: the
-write-ahead log folded in), the leaf records' bytes and the journal's, both per scan and
-per observed voxel (a voxel some scan saw, counted once, in its own leaf), the bytes the
-same leaves and scans take in the encoding of file version 4 (every voxel value stored,
-the evidence and the journal in float64), and the median insert time. ``--window N``
-adds a run with ``OnlineConfig.journal_scans = N``.
+Per scene and journal window (the default ``OnlineConfig.journal_scans``, and with
+``--window N`` that too) the table gives, after the last scan: the file's bytes (after
+closing: the write-ahead log folded in; SQLite reuses the pages of dropped rows rather
+than shrinking the file), the leaf records' bytes per observed voxel (a voxel some scan
+saw, counted once, in its own leaf) and the journal's per scan, beside what the same
+leaves and scans take in the encoding of file version 4 (every voxel value stored, the
+evidence and the journal in float64), the checkpoint records, the record bytes the file
+gained per scan over the second half of the run, and the median insert time after the
+learning step.
 
     .venv/bin/python tools/bench_file_size.py --scans 40 --window 10
 """
@@ -122,16 +125,25 @@ def table_bytes(path: Path) -> dict[str, int]:
     return {"leaves": leaves, "journal": journal[0], "journaled": journal[1], "kept": kept}
 
 
+def payload_bytes(sizes: dict[str, int]) -> int:
+    """Bytes of leaf records, journal and checkpoint records together."""
+    return sizes["leaves"] + sizes["journal"] + sizes["kept"]
+
+
 def run(name: str, scans: list[Scan], config: MapConfig, folder: Path) -> dict[str, float]:
     """Map the scans into a new file; sizes and the median insert time."""
     path = folder / f"{name}.octolgp"
-    times = []
+    times, payload = [], []
     with OnlineMap(config, path=path) as m:
         for scan in scans:  # one insert per iteration
             t = time.perf_counter()
-            m.insert_scan(scan)
-            times.append(time.perf_counter() - t)
+            update = m.insert_scan(scan)
+            if not update.buffered and "learning" not in update.stages:
+                times.append(time.perf_counter() - t)  # inserts after the learning step
+            payload.append(payload_bytes(table_bytes(path)))
         n = m.n_scans
+    half = len(payload) // 2
+    growth = (payload[-1] - payload[half]) / max(len(payload) - 1 - half, 1)
     sizes = table_bytes(path)
     old_leaves, old_journal = v4_bytes(path)
     voxels = observed_voxels(path)
@@ -143,7 +155,8 @@ def run(name: str, scans: list[Scan], config: MapConfig, folder: Path) -> dict[s
         "v4_journal": old_journal,
         "voxels": voxels,
         "points": sum(len(s) for s in scans) / len(scans),
-        "insert": statistics.median(times[1:] or times),
+        "insert": statistics.median(times[1:] or times) if times else float("nan"),
+        "growth": growth,
     }
 
 

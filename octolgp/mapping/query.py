@@ -47,6 +47,11 @@ def query_points(points: object, config: MapConfig) -> FloatArray:
     return X
 
 
+QUERY_CHUNK = 1 << 16
+"""Points a query handles at once: its temporaries (the ``2**d`` corners of each point
+and their values) stay a few megabytes whatever the query's size."""
+
+
 def lookup(
     store: LeafStore, grid: LeafGrid, X: FloatArray, fields: tuple[str, ...]
 ) -> list[FloatArray]:
@@ -68,6 +73,12 @@ def lookup(
     """
     out = [np.full(X.shape[0], np.nan) for _ in fields]
     if X.shape[0] == 0 or len(store) == 0:
+        return out
+    if X.shape[0] > QUERY_CHUNK:  # bounded temporaries for a large query
+        for lo in range(0, X.shape[0], QUERY_CHUNK):  # one chunk of points per iteration
+            part = lookup(store, grid, X[lo : lo + QUERY_CHUNK], fields)
+            for arr, values in zip(out, part, strict=True):
+                arr[lo : lo + QUERY_CHUNK] = values
         return out
     order, keys, bounds = group_keys(grid.pack(grid.leaf_of(X)))
     for j, key in enumerate(keys.tolist()):  # one iteration per leaf queried
@@ -98,6 +109,15 @@ def interpolate(
     known : ndarray of bool, shape (q,)
         Points whose own voxel holds a value.
     """
+    if X.shape[0] > QUERY_CHUNK:  # bounded temporaries: 2**d corners a point
+        mean, var = np.empty(X.shape[0]), np.empty(X.shape[0])
+        known = np.empty(X.shape[0], dtype=bool)
+        for lo in range(0, X.shape[0], QUERY_CHUNK):  # one chunk of points per iteration
+            hi = lo + QUERY_CHUNK
+            mean[lo:hi], var[lo:hi], known[lo:hi] = interpolate(
+                store, grid, config, prior, X[lo:hi]
+            )
+        return mean, var, known
     d = config.dim
     res = config.resolution
     (own,) = lookup(store, grid, X, ("mean",))
