@@ -212,14 +212,19 @@ class MapReads:
             On a bad shape, a non-finite value or a point outside the addressable range.
         """
         X = query_points(points, self.config)
+        out = np.empty(X.shape[0])
         with self._reading(X) as m:
             hp = m.hyperparameters
-            if not interpolate or hp is None:
-                (prob,) = lookup(m.store, m.grid, X, ("prob",))
-                return np.where(np.isnan(prob), 0.5, prob)
-            mean, var, known = interpolate_latent(m, X)
-        prob = latent_occupancy(mean, var, hp)
-        return np.where(known, prob, 0.5)
+            for lo in range(0, X.shape[0], QUERY_CHUNK):  # bounded temporaries, chunk by chunk
+                part = X[lo : lo + QUERY_CHUNK]
+                if not interpolate or hp is None:
+                    (prob,) = lookup(m.store, m.grid, part, ("prob",))
+                    out[lo : lo + QUERY_CHUNK] = np.where(np.isnan(prob), 0.5, prob)
+                else:
+                    mean, var, known = interpolate_latent(m, part)
+                    prob = latent_occupancy(mean, var, hp)
+                    out[lo : lo + QUERY_CHUNK] = np.where(known, prob, 0.5)
+        return out
 
     def latent(self, points: object, *, interpolate: bool = True) -> tuple[FloatArray, FloatArray]:
         """GP latent mean and variance at query points.
