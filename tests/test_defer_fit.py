@@ -110,12 +110,10 @@ class Recorder:
         self.values.extend(v.prob for v in change.leaves)
 
 
-def test_maps_that_record_or_show_every_step_fit_at_once(tmp_path: Path, room: list[Scan]) -> None:
+def test_maps_that_show_every_step_fit_at_once(room: list[Scan]) -> None:
     config = MapConfig(dim=3, resolution=0.2, hyperparameters=HP3)
     sink = Recorder()
     maps = [
-        OnlineMap(config, tmp_path / "a.octolgp"),  # a map file
-        OnlineMap(dataclasses.replace(config, memory_budget_mb=50.0)),  # a spill file
         OnlineMap(config, sink=sink),  # a sink
         OnlineMap(with_defer(config, False)),
         OnlineMap(
@@ -130,6 +128,37 @@ def test_maps_that_record_or_show_every_step_fit_at_once(tmp_path: Path, room: l
         m.close()
     assert sink.values
     assert all(v.size and np.isfinite(v).all() for v in sink.values)
+
+
+def test_maps_with_a_file_defer_and_read_as_fitted_at_once(
+    tmp_path: Path, room: list[Scan]
+) -> None:
+    """A map file keeps lattice evidence only, so file and spill maps defer as well: their
+    reads, the file read by another reader and the file reopened equal an eager map."""
+    config = MapConfig(dim=3, resolution=0.2, hyperparameters=HP3)
+    eager = OnlineMap(with_defer(config, False))
+    path = tmp_path / "a.octolgp"
+    filed = OnlineMap(config, path)
+    spilled = OnlineMap(dataclasses.replace(config, memory_budget_mb=0.5))
+    for scan in room[:4]:
+        eager.insert_scan(scan)
+        for m in (filed, spilled):
+            u = m.insert_scan(scan)
+            assert m.defers_fit
+            assert "fit" not in u.stages
+    assert filed.store.pending
+    with OnlineMap.open(path, read_only=True) as reader:  # beside the writer, unsettled
+        assert leaf_bytes(reader) == leaf_bytes(eager)
+    assert spilled.store.evictions > 0
+    for m in (filed, spilled):
+        assert leaf_bytes(m) == leaf_bytes(eager)
+        assert not m.store.pending
+        m.close()
+    with OnlineMap.open(path) as back:
+        assert leaf_bytes(back) == leaf_bytes(eager)
+        back.insert_scan(room[4])
+        eager.insert_scan(room[4])
+        assert leaf_bytes(back) == leaf_bytes(eager)
 
 
 def test_a_pending_leaf_is_written_as_its_evidence_and_reads_back_pending(room: list[Scan]) -> None:

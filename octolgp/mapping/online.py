@@ -603,14 +603,16 @@ class OnlineMap(MapReads):
     def defers_fit(self) -> bool:
         """Whether inserts leave the changed leaves' fits to the next read.
 
-        ``OnlineConfig.defer_fit`` on a lattice map with neither a map file (nor the
-        spill file of a memory budget) nor a sink: each of those records or shows
-        every step's values, so such a map fits in ``insert_scan``.
+        ``OnlineConfig.defer_fit`` on a lattice map without a sink (a sink shows every
+        step's values, so such a map fits in ``insert_scan``). A map file (or the spill
+        file of a memory budget) keeps a lattice leaf's evidence, not its values, so a
+        map with one defers too once it has its hyperparameters; while it learns them
+        it journals the buffered scans and builds their leaves in the learning step.
         """
         return (
             self.config.online.defer_fit
             and self.config.online.engine == "lattice"
-            and self._file is None
+            and (self._file is None or self.hyperparameters is not None)
             and isinstance(self.sink, NullSink)
         )
 
