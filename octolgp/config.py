@@ -352,9 +352,10 @@ class OnlineConfig:
         ``insert_scan``: a sensor that keeps touching a leaf scan after scan costs one
         fit of it per read, not one per scan, and an insert is the observation and the
         evidence update only. What a read returns is the same either way. It applies
-        to the lattice engine on a map with neither a map file, a memory budget nor a
-        sink (those record or show every step's values); otherwise leaves are fitted in
-        ``insert_scan``. Default True.
+        to the lattice engine on a map without a sink (a sink shows every step's
+        values); a map with a file or a memory budget defers once it has its
+        hyperparameters (the file keeps a lattice leaf's evidence, not its values).
+        Otherwise leaves are fitted in ``insert_scan``. Default True.
     scan_precision : float or None
         Metres to which a scan's returns are rounded as it is inserted: each return's
         offset from the sensor becomes a whole number of steps (no-return beams keep

@@ -36,14 +36,12 @@ values agree to a few float32 ulps. The exact engine fits each leaf alone: bit f
 
 
 def _assert_same_map(a: OnlineMap, b: OnlineMap) -> None:
-    keys_a = [k for k, _ in a.leaves()]
-    keys_b = [k for k, _ in b.leaves()]
-    assert keys_a == keys_b
+    leaves_a, leaves_b = dict(a.leaves()), dict(b.leaves())  # with their values
+    keys_a = list(leaves_a)
+    assert keys_a == list(leaves_b)
     exact = a.config.online.engine == "exact"
     for k in keys_a:
-        la, lb = a.store.get(k), b.store.get(k)
-        assert la is not None
-        assert lb is not None
+        la, lb = leaves_a[k], leaves_b[k]
         assert evidence_bytes(la) == evidence_bytes(lb), k  # the evidence: bit for bit
         for name in ("mean", "var", "prob"):
             x, y = getattr(la, name), getattr(lb, name)

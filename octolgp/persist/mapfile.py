@@ -568,13 +568,16 @@ class MapFile:
         except sqlite3.Error as exc:
             raise OctolgpError(f"map file {str(self.path)!r} is corrupt: {exc}") from None
 
-    def _history(
+    def write_history(
         self,
         journal: Iterable[tuple[int, Scan]],
         checkpoints: list[int],
         rows: Iterable[tuple[int, int, bytes | None]],
     ) -> None:
-        """Write a journal and checkpoints as another file kept them (a copy of a map)."""
+        """Write a journal and checkpoints as another file kept them (a copy of a map).
+
+        Only for a new file (:func:`write_map`): nothing is checked against its leaves.
+        """
         with self.transaction() as con:
             con.executemany(
                 f"INSERT INTO scans({_SCAN_COLUMNS}, crc, codec) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
@@ -954,7 +957,7 @@ def write_map(
     try:
         f = MapFile.create(tmp, config, hyperparameters, n_scans, leaves)
         try:
-            f._history(journal, checkpoints or [0], checkpoint_rows)
+            f.write_history(journal, checkpoints or [0], checkpoint_rows)
         finally:
             f.close()
         for suffix in ("-wal", "-shm"):  # a killed writer's log must not meet the new file
