@@ -14,7 +14,10 @@ from test_correct import journaled, office_scan, pose
 from test_online import assert_same_map
 
 from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineConfig, OnlineMap, Scan
+from octolgp.engines.lattice_record import decode_lattice, encode_lattice, encode_lattice_many
+from octolgp.geometry.keys import pack_keys, return_steps, step_points
 from octolgp.mapping.correction import transform_scan
+from octolgp.mapping.grid import LeafGrid
 from octolgp.persist.journal import decode_points, encode_points
 from octolgp.sim.lidar3d import simulate_lidar_room
 
@@ -196,3 +199,48 @@ def test_a_bad_journal_window_names_the_field() -> None:
     for bad in (0, -3, 2.5, True):
         with pytest.raises(OctolgpError, match=r"OnlineConfig\.journal_scans"):
             OnlineConfig(journal_scans=bad)  # type: ignore[arg-type]
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 10_000), dim=st.sampled_from([2, 3]))
+def test_lattice_records_round_trip_and_the_batch_encoder_writes_the_same_bytes(
+    seed: int, dim: int
+) -> None:
+    """Leaves whose returns are their occupied voxels at cell centres (the usual kind), some
+    listed (a return without an occupied count), some at any position (older files), some
+    unsized: every record decodes to its evidence, and many at once encode the same."""
+    config = MapConfig(dim=dim, resolution=0.2)
+    grid = LeafGrid.from_config(config)
+    rng = np.random.default_rng(seed)
+    box = grid.side + 2 * grid.halo_voxels
+    n_halo = box**dim
+    records = []
+    for kind in range(8):
+        index = rng.integers(100, (1 << 16) // grid.side - 100, dim)
+        if kind == 7:  # nothing seen yet
+            records.append(
+                (np.zeros((2, 0), np.uint8), np.zeros(0, np.int64), np.zeros((0, dim)), index)
+            )
+            continue
+        counts = (rng.random((2, n_halo)) < 0.2) * rng.integers(1, 6, (2, n_halo))
+        counts = counts.astype(np.uint8)
+        flat = np.flatnonzero(counts[0])
+        if kind == 3 and flat.size:  # a return where no occupied count is (listed)
+            counts[0, flat[0]] = 0
+        local = np.stack([(flat // box**a) % box for a in range(dim)], axis=1)
+        keys = local + index * grid.side - grid.halo_voxels
+        points = (keys - (1 << (grid.tree_depth - 1)) + rng.random(keys.shape)) * 0.2
+        if kind != 5:  # kind 5: positions as an older file kept them
+            points = step_points(return_steps(points, keys, 0.2, 16), keys, 0.2, 16)
+        records.append((counts, pack_keys(keys), points, index))
+    one = [encode_lattice(c, k, p, i, grid) for c, k, p, i in records]
+    many = encode_lattice_many(
+        [r[0] for r in records], [r[1] for r in records], [r[2] for r in records],
+        np.stack([r[3] for r in records]), grid,
+    )  # fmt: skip
+    assert one == many
+    for blob, (counts, keys, points, index) in zip(one, records, strict=True):
+        c, k, p = decode_lattice(blob, index, grid)
+        assert c.tobytes() == counts.tobytes()
+        assert k.tobytes() == keys.tobytes()
+        assert p.tobytes() == np.asarray(points, dtype=np.float64).tobytes()

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Executor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -137,6 +137,10 @@ class LeafEngine(Protocol):
 
     def record(self, evidence: LeafEvidence, index: IntArray) -> bytes:
         """The evidence of the leaf ``index`` as the map file keeps it (:meth:`from_record`)."""
+        ...
+
+    def records(self, evidence: Sequence[LeafEvidence], indices: IntArray) -> list[bytes]:
+        """:meth:`record` of many leaves (``indices``: (L, d)), the same bytes."""
         ...
 
     def from_record(self, blob: bytes, index: IntArray) -> LeafEvidence:

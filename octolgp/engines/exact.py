@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import struct
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from concurrent.futures import Executor
 from dataclasses import dataclass
 
@@ -339,6 +339,10 @@ class ExactEngine:
     def record(self, evidence: object, index: IntArray) -> bytes:
         """The evidence as the map file keeps it: :meth:`encode` (the leaf's values too)."""
         return self.encode(evidence)
+
+    def records(self, evidence: Sequence[object], indices: IntArray) -> list[bytes]:
+        """:meth:`record` of many leaves."""
+        return [self.encode(ev) for ev in evidence]
 
     def from_record(self, blob: bytes, index: IntArray) -> ExactEvidence:
         """Inverse of :meth:`record`."""

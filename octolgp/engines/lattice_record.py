@@ -133,3 +133,101 @@ def decode_lattice(
         steps = np.frombuffer(blob, "<u2", r * d, at).reshape(d, r).T
         hits = step_points(steps, keys, grid.resolution, grid.tree_depth)
     return counts, pack_keys(keys), hits
+
+
+def encode_lattice_many(
+    counts: list[np.ndarray],
+    hit_keys: list[IntArray],
+    hits: list[np.ndarray],
+    indices: IntArray,
+    grid: LeafGrid,
+) -> list[bytes]:
+    """:func:`encode_lattice` of many leaves at once (the same bytes, leaf by leaf).
+
+    The arrays of every leaf are stacked so that the work per leaf is a few slices; a
+    leaf whose counts are not sized to the halo box (none seen yet) is encoded alone.
+
+    Parameters
+    ----------
+    counts, hit_keys, hits : list of ndarray
+        Per leaf, as :func:`encode_lattice` takes them.
+    indices : ndarray of int64, shape (L, d)
+        The leaves' indices.
+    grid : LeafGrid
+    """
+    d = grid.dim
+    box = grid.side + 2 * grid.halo_voxels
+    n_halo = box**d
+    out: list[bytes | None] = [None] * len(counts)
+    whole = [j for j, c in enumerate(counts) if c.shape == (2, n_halo)]
+    for j in sorted(set(range(len(counts))) - set(whole)):  # unsized leaves, one by one
+        out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid)
+    if whole:
+        stacked = np.concatenate([counts[j] for j in whole]).reshape(len(whole), 2, n_halo)
+        r = np.array([hit_keys[j].size for j in whole], dtype=np.int64)
+        keys = unpack_keys(np.concatenate([hit_keys[j] for j in whole]), d)
+        points = np.concatenate([np.reshape(hits[j], (-1, d)) for j in whole])
+        for j, blob in zip(
+            whole, _encode_sized(stacked, r, keys, points, indices[whole], grid), strict=True
+        ):
+            out[j] = blob
+    return [b for b in out if b is not None]
+
+
+def _encode_sized(
+    counts: np.ndarray,
+    r: IntArray,
+    keys: IntArray,
+    points: np.ndarray,
+    indices: IntArray,
+    grid: LeafGrid,
+) -> list[bytes]:
+    """Records of leaves with sized counts (L, 2, H); returns concatenated leaf by leaf."""
+    n, n_halo = counts.shape[0], counts.shape[2]
+    d = grid.dim
+    box = grid.side + 2 * grid.halo_voxels
+    leaf = np.repeat(np.arange(n), r)
+    seen = (counts[:, 0] | counts[:, 1]) > 0
+    m = seen.sum(axis=1)
+    bitmaps = np.packbits(seen, axis=1, bitorder="little")
+    occ_h = counts[:, 0][seen]  # leaf by leaf, voxels ascending
+    occ_f = counts[:, 1][seen]
+    local = keys - np.repeat(_box_origin(indices, grid), r, axis=0)
+    flat = local @ (box ** np.arange(d, dtype=np.int64)) if keys.size else np.zeros(0, np.int64)
+    rows, cols = np.nonzero(counts[:, 0])
+    n_occ = np.bincount(rows, minlength=n)
+    listed = n_occ != r
+    same = ~listed[leaf] if leaf.size else np.zeros(0, dtype=bool)
+    # where the counts agree, compare the returns' voxels with the occupied ones in order
+    bad = np.zeros(n, dtype=bool)
+    if same.any():
+        occ_of = np.zeros(leaf.size, dtype=np.int64)
+        occ_of[same] = cols[np.isin(rows, np.flatnonzero(~listed))]
+        bad[np.unique(leaf[same & (occ_of != flat)])] = True
+    listed |= bad
+    steps = return_steps(points, keys, grid.resolution, grid.tree_depth)
+    moved = np.any(step_points(steps, keys, grid.resolution, grid.tree_depth) != points, axis=1)
+    exact = np.bincount(leaf[moved], minlength=n) > 0
+    m_at = np.r_[0, np.cumsum(m)].tolist()
+    r_at = np.r_[0, np.cumsum(r)].tolist()
+    flat_u4 = flat.astype("<u4")
+    steps_u2 = steps.astype("<u2")
+    points_f8 = points.astype("<f8")
+    out = []
+    for j in range(n):  # one leaf per iteration: slices of the stacked arrays
+        a, b, ra, rb = m_at[j], m_at[j + 1], r_at[j], r_at[j + 1]
+        flags = (_LISTED if listed[j] else 0) | (_EXACT if exact[j] else 0)
+        parts = [
+            _HEAD.pack(n_halo, rb - ra, flags),
+            bitmaps[j].tobytes(),
+            occ_h[a:b].tobytes(),
+            occ_f[a:b].tobytes(),
+        ]
+        if listed[j]:
+            parts.append(flat_u4[ra:rb].tobytes())
+        if exact[j]:
+            parts.append(points_f8[ra:rb].tobytes())
+        else:
+            parts.append(np.ascontiguousarray(steps_u2[ra:rb].T).tobytes())
+        out.append(b"".join(parts))
+    return out

@@ -87,6 +87,8 @@ _FOREIGN = 4  # flag: the stored values are not the engine's fit of the evidence
 _COUNT = struct.Struct("<q")
 _COUNTS = struct.Struct("<q")  # record 2: halo voxels of the count arrays
 _SCAN_COLUMNS = "idx, dim, origin, points, max_range, stamp"
+ENCODE_BATCH = 4096
+"""Leaves encoded together when a step writes them (bounded temporaries)."""
 _CHECKPOINT_TABLE = (
     "CREATE TABLE checkpoint_leaves(checkpoint INTEGER NOT NULL, key INTEGER NOT NULL, "
     "data BLOB, PRIMARY KEY (checkpoint, key)) WITHOUT ROWID"
@@ -95,6 +97,11 @@ _STEPS = 1  # a journal row's codec: the steps of a rounded scan (octolgp.persis
 
 
 def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
+    """:func:`encode_leaves` of one leaf."""
+    return encode_leaves([leaf], engine)[0]
+
+
+def encode_leaves(leaves: list[Leaf], engine: LeafEngine) -> list[bytes]:
     """A leaf as bytes: a header, its voxel values where they must be kept, its evidence.
 
     Little-endian: the 32-byte header (magic, record 5, dimension, flags, the leaf's
@@ -107,23 +114,30 @@ def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
     written; values set another way (``leaf.fitted`` false) are kept with the
     ``_FOREIGN`` flag. An engine that keeps values refuses a pending leaf (``ValueError``).
     """
-    foreign = not leaf.fitted and not leaf.pending
-    keep_values = foreign or not engine.values_from_evidence
-    if keep_values and leaf.pending:
-        raise ValueError("a leaf whose fit is pending cannot be written")
-    flags = _VALUES | (_PRUNED if leaf.pruned else 0) | (_FOREIGN if foreign else 0)
-    flags = flags if keep_values else 0
-    key = int(pack_keys(leaf.index[None])[0])
-    head = _COMPACT_HEADER.pack(
-        _LEAF_MAGIC, _RECORD, int(leaf.index.size), flags, key, leaf.refits, leaf.touched
-    )
-    parts = [head]
-    if keep_values:
-        parts.append(_COUNT.pack(leaf.prob.size))
-        parts += [a.astype("<f4").tobytes() for a in (leaf.mean, leaf.var, leaf.prob)]
-    parts.append(zlib.compress(engine.record(leaf.evidence, leaf.index), 6))
-    body = b"".join(parts)
-    return body + _CRC.pack(zlib.crc32(body))
+    if not leaves:
+        return []
+    indices = np.stack([leaf.index for leaf in leaves]).astype(np.int64)
+    keys = pack_keys(indices).tolist()
+    evidence = engine.records([leaf.evidence for leaf in leaves], indices)
+    out = []
+    for leaf, key, record in zip(leaves, keys, evidence, strict=True):  # one record each
+        foreign = not leaf.fitted and not leaf.pending
+        keep_values = foreign or not engine.values_from_evidence
+        if keep_values and leaf.pending:
+            raise ValueError("a leaf whose fit is pending cannot be written")
+        flags = _VALUES | (_PRUNED if leaf.pruned else 0) | (_FOREIGN if foreign else 0)
+        flags = flags if keep_values else 0
+        head = _COMPACT_HEADER.pack(
+            _LEAF_MAGIC, _RECORD, int(leaf.index.size), flags, key, leaf.refits, leaf.touched
+        )
+        parts = [head]
+        if keep_values:
+            parts.append(_COUNT.pack(leaf.prob.size))
+            parts += [a.astype("<f4").tobytes() for a in (leaf.mean, leaf.var, leaf.prob)]
+        parts.append(zlib.compress(record, 6))
+        body = b"".join(parts)
+        out.append(body + _CRC.pack(zlib.crc32(body)))
+    return out
 
 
 def decode_leaf(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
@@ -441,9 +455,7 @@ class MapFile:
                 ("checkpoints", "[0]"),
             ]
             con.executemany("INSERT INTO meta VALUES (?, ?)", rows)
-            for k, leaf in leaves:  # one row per leaf
-                con.execute("INSERT INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine)))
-                keys.append(k)
+            keys = _insert_leaves(con, "INSERT", list(leaves), engine)
             con.execute("COMMIT")
         except sqlite3.Error as exc:
             lock.release()
@@ -689,11 +701,7 @@ class MapFile:
                 (_scan_row(i, s, self._precision) for i, s in journal),
             )
             self._keep_checkpoint(con, [k for k, _ in leaves])
-            for k, leaf in leaves:  # one row per changed leaf
-                con.execute(
-                    "INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine))
-                )
-                written.append(k)
+            written = _insert_leaves(con, "INSERT OR REPLACE", leaves, engine)
             con.execute(
                 "UPDATE meta SET value=? WHERE key='hyperparameters'", (_hp_json(hyperparameters),)
             )
@@ -811,11 +819,7 @@ class MapFile:
                     (*row[1:], i),
                 )
             con.executemany("DELETE FROM leaves WHERE key=?", ((int(k),) for k in removed))
-            for k, leaf in leaves:  # one row per rebuilt leaf
-                con.execute(
-                    "INSERT OR REPLACE INTO leaves VALUES (?, ?)", (k, encode_leaf(leaf, engine))
-                )
-                written.append(k)
+            written = _insert_leaves(con, "INSERT OR REPLACE", leaves, engine)
         return written
 
     def close(self) -> None:
@@ -838,6 +842,20 @@ class MapFile:
                 self._lock.release()
         if self.temporary:
             _remove(self.path)
+
+
+def _insert_leaves(
+    con: sqlite3.Connection, verb: str, leaves: list[tuple[int, Leaf]], engine: LeafEngine
+) -> list[int]:
+    """Write leaf rows (``verb``: ``INSERT`` or ``INSERT OR REPLACE``), encoded in batches."""
+    written: list[int] = []
+    for lo in range(0, len(leaves), ENCODE_BATCH):  # one batch of leaves per iteration
+        part = leaves[lo : lo + ENCODE_BATCH]
+        keys = [int(k) for k, _ in part]
+        blobs = encode_leaves([leaf for _, leaf in part], engine)
+        con.executemany(f"{verb} INTO leaves VALUES (?, ?)", zip(keys, blobs, strict=True))
+        written += keys
+    return written
 
 
 def _has_table(con: sqlite3.Connection, name: str) -> bool:
