@@ -43,7 +43,7 @@ from octolgp.engines import engine_for
 from octolgp.engines.lattice import LatticeEvidence
 from octolgp.mapping.grid import LeafGrid
 from octolgp.persist.mapfile import MapFile
-from octolgp.sim.mission import simulate_mission3d
+from octolgp.sim.mission import simulate_car_street
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"  # shipped with the repository
@@ -53,17 +53,7 @@ _V4_HEADER = 40  # record 4: magic, version, dim, values, pruned, refits, touche
 
 def street_scans(n: int) -> list[Scan]:
     """The 64-ring street, filtered at 0.2 m."""
-    mission = simulate_mission3d(
-        1000.0,
-        seed=0,
-        spacing=1.0,
-        n_azimuth=1024,
-        n_elevation=64,
-        fov_down=-24.9,
-        fov_up=2.0,
-        max_range=80.0,
-        range_noise=0.02,
-    )
+    mission = simulate_car_street(range_noise=0.02)
     return [mission.scan(100 + k).downsample(0.2) for k in range(n)]
 
 

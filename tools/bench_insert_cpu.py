@@ -27,7 +27,7 @@ import numpy as np
 import octolgp
 from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan
 from octolgp.sim.lidar3d import simulate_lidar_room
-from octolgp.sim.mission import simulate_mission3d
+from octolgp.sim.mission import simulate_car_street
 
 
 def scene_scans(scene: str) -> list[Scan]:
@@ -37,17 +37,7 @@ def scene_scans(scene: str) -> list[Scan]:
             12, seed=0, n_azimuth=1024, n_elevation=32, max_range=30.0, range_noise=0.0, n_heldout=1
         )
         return [s.downsample(0.2) for s in room.scans()]
-    mission = simulate_mission3d(
-        1000.0,
-        seed=0,
-        spacing=1.0,
-        n_azimuth=1024,
-        n_elevation=64,
-        fov_down=-24.9,
-        fov_up=2.0,
-        max_range=80.0,
-        range_noise=0.0,
-    )
+    mission = simulate_car_street()
     return [mission.scan(100 + k).downsample(0.2) for k in range(7)]
 
 

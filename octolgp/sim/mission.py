@@ -339,3 +339,22 @@ def simulate_mission3d(
     az, el = az.ravel(), el.ravel()
     directions = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
     return Mission3D(int(seed), length, spacing, directions, max_range, range_noise)
+
+
+def simulate_car_street(*, seed: int = 0, range_noise: float = 0.0) -> Mission3D:
+    """The benchmarks' car-lidar street: :func:`simulate_mission3d` with a 64 x 1024 lidar.
+
+    A 1 km lap, a scan every metre, elevations -24.9° to 2° (a 64-beam car sensor's),
+    ranges to 80 m (no-returns beyond).
+    """
+    return simulate_mission3d(
+        1000.0,
+        seed=seed,
+        spacing=1.0,
+        n_azimuth=1024,
+        n_elevation=64,
+        fov_down=-24.9,
+        fov_up=2.0,
+        max_range=80.0,
+        range_noise=range_noise,
+    )
