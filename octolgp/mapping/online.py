@@ -629,21 +629,31 @@ class OnlineMap(MapReads):
             return self._settle()
 
     def _settle(self, keys: list[int] | None = None) -> int:
-        """Fit pending leaves (``keys``, or all), every tile of each; store them unstamped."""
+        """Fit pending leaves (``keys``, or all), every tile of each; store them unstamped.
+
+        A map with a file settles them ``FIT_CHUNK`` at a time, trimming the store to
+        its budget after each chunk: its pending leaves may have been evicted, and are
+        loaded back only as they are fitted.
+        """
         keys = self.store.pending if keys is None else keys
         if not keys or self.hyperparameters is None:  # nothing to fit with while learning
             return 0
+        done = 0
+        step = len(keys) if self._file is None else FIT_CHUNK
         with collector_paused():
-            found = [(k, leaf) for k in keys if (leaf := self.store.get(k)) is not None]
-            fits = self._fit([leaf for _, leaf in found])
-            fitted = [(k, f.leaf) for (k, _), f in zip(found, fits, strict=True)]
-            if self._file is None:
-                self._write(fitted)
-            else:  # the file keeps their evidence, which has not changed: values live in RAM
-                self.store.apply(fitted)
-                self.store.persisted([k for k, _ in fitted])
-                self.store.trim()
-        return len(found)
+            for lo in range(0, len(keys), step):  # one chunk of pending leaves per iteration
+                part = keys[lo : lo + step]
+                found = [(k, leaf) for k in part if (leaf := self.store.get(k)) is not None]
+                fits = self._fit([leaf for _, leaf in found])
+                fitted = [(k, f.leaf) for (k, _), f in zip(found, fits, strict=True)]
+                if self._file is None:
+                    self._write(fitted)
+                else:  # the file keeps their unchanged evidence: the values live in RAM
+                    self.store.apply(fitted)
+                    self.store.persisted([k for k, _ in fitted])
+                    self.store.trim()
+                done += len(found)
+        return done
 
     @_step_of_state
     def correct_scans(self, corrections: Mapping[int, ArrayLike]) -> ScanUpdate:
