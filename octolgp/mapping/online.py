@@ -67,6 +67,7 @@ from octolgp.mapping.query import MapReads, leaves_read
 from octolgp.mapping.store import Leaf, LeafStore, MapStorage
 from octolgp.mapping.update import ScanUpdate
 from octolgp.mapping.workers import Workers, collector_paused
+from octolgp.memory import release_free_memory
 from octolgp.scan import FloatArray, Scan
 from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
 from octolgp.training import check_scans
@@ -651,7 +652,7 @@ class OnlineMap(MapReads):
                 else:  # the file keeps their unchanged evidence: the values live in RAM
                     self.store.apply(fitted)
                     self.store.persisted([k for k, _ in fitted])
-                    self.store.trim()
+                    self._trim()
                 done += len(found)
         return done
 
@@ -1021,11 +1022,21 @@ class OnlineMap(MapReads):
             self._extents.journaled([s for _, s in journal])
             self.store.persisted(written)
             self._writes += 1
-            self.store.trim()
+            self._trim()
         except BaseException as exc:  # the file holds the step, the store part of it
             self._writes += 1
             self._break("write", exc)
             raise
+
+    def _trim(self) -> None:
+        """Trim the store to its budget; hand the heap's freed pages back when it evicts.
+
+        Evicted leaves' arrays go back to the C heap, whose free pages glibc keeps
+        resident (:mod:`octolgp.memory`): without ``malloc_trim`` a budgeted map's process
+        holds about 40 % more than its leaves.
+        """
+        if self.store.trim():
+            release_free_memory()
 
     def _fit(
         self,
