@@ -95,9 +95,8 @@ of this many, whose stacked counts, returns and values stay small enough for the
 
 RELEASE_EVICTIONS = 1
 """A budgeted map hands the heap's freed pages back to the OS once this many leaves have
-been evicted since it last did: at every step that evicts. On the 3D 2,000-scan mission
-with a 64 MB budget that is a peak 112 MB above the warmed-up process in 216 s; every
-2,048 evicted leaves, 131 MB in 186 s (``tools/bench_budget_rss.py``)."""
+been evicted since it last did: at every step that evicts (less often holds more RAM for
+less time; BENCHMARKS.md, "Memory: does the budget bound the process?")."""
 
 R = TypeVar("R")
 
