@@ -6,7 +6,8 @@ Scenes (the same as ``tools/bench_3d.py``'s, hyperparameters given, length scale
 - ``street64``: the simulated street, a 64 x 1024 lidar (-24.9°..2°) to 80 m, 7 scans 1 m
   apart from 100 m along the route, through ``Scan.downsample(0.2)``.
 
-``MapConfig(dim=3, resolution=0.2)`` with ``online.n_jobs`` = ``--threads`` (default 1);
+``MapConfig(dim=3, resolution=0.2)`` with ``online.n_jobs`` = ``--threads`` (default 1),
+in memory or, with ``--file``, written to a map file in a temporary folder;
 each insert is timed by ``time.thread_time`` (CPU seconds of the calling thread, less
 sensitive to other processes than wall clock; with ``--threads 2`` the fitting threads'
 CPU is not in it, so read the wall column) and by wall clock. Compare two checkouts in
@@ -20,7 +21,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -46,6 +49,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scene", choices=("room", "street64"), default="room")
     parser.add_argument("--threads", type=int, default=1, help="online.n_jobs (default 1)")
+    parser.add_argument("--file", action="store_true", help="write the map to a map file")
     args = parser.parse_args()
     scans = scene_scans(args.scene)
     hp = Hyperparameters(
@@ -55,7 +59,9 @@ def main() -> None:
     config = dataclasses.replace(
         config, hyperparameters=hp, online=dataclasses.replace(config.online, n_jobs=args.threads)
     )
-    m = OnlineMap(config)
+    folder = tempfile.TemporaryDirectory() if args.file else None
+    path = None if folder is None else Path(folder.name) / "m.octolgp"
+    m = OnlineMap(config, path=path)
     cpu: list[float] = []
     wall: list[float] = []
     stages: dict[str, list[float]] = {}
@@ -69,7 +75,13 @@ def main() -> None:
         for name, seconds in update.stages.items():
             stages.setdefault(name, []).append(seconds)
     m.close()
-    print(f"octolgp from {octolgp.__file__}; scene {args.scene}, {args.threads} thread(s)")
+    if folder is not None:
+        folder.cleanup()
+    where = "a map file" if args.file else "memory"
+    print(
+        f"octolgp from {octolgp.__file__}; scene {args.scene}, {args.threads} thread(s), "
+        f"the map in {where}"
+    )
     print(
         f"after the first insert: CPU s median {np.median(cpu[1:]):.3f}, wall s median "
         f"{np.median(wall[1:]):.3f}, refitted leaves median {int(np.median(leaves[1:]))}; "
