@@ -458,10 +458,10 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     origins, ends, max_range = stack_beams(scan_list)
     scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
     beams = split_beams(origins, ends, max_range, config.free_margin)
-    hit_keys = _voxel_keys(ends[beams.is_hit], res, depth)
+    returns = ends[beams.is_hit]
+    hit_keys = _voxel_keys(returns, res, depth)
     # returns at the precision a map file keeps them (a map equals the map read back)
-    steps = return_steps(ends[beams.is_hit], hit_keys, res, depth)
-    hit_points = step_points(steps, hit_keys, res, depth)
+    hit_points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
     hit_packed = pack_keys(hit_keys)
     # one (scan, voxel) code per return; the first return of each, in beam order
     all_codes = _scan_codes(hit_packed, scan[beams.is_hit], dim)

@@ -366,7 +366,7 @@ class Scan:
         keys = np.floor(self.points / float(voxel)).astype(np.int64)
         if self.max_range is not None:
             length = np.linalg.norm(self.points - self.origin, axis=1)
-            no_return = length >= self.max_range * (1.0 - 1e-9)
+            no_return = length >= self.max_range * (1.0 - NO_RETURN_RTOL)
             keys = np.concatenate([keys, no_return[:, None].astype(np.int64)], axis=1)
         _, first = np.unique(keys, axis=0, return_index=True)
         return Scan(

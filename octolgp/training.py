@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.scan import FloatArray, Scan
+from octolgp.scan import NO_RETURN_RTOL, FloatArray, Scan
 
 IntArray = NDArray[np.int64]
 
@@ -143,7 +143,7 @@ def split_beams(
     length = np.linalg.norm(vec, axis=1)
     valid = length > 1e-9  # an endpoint on the sensor carries no direction
     # relative tolerance: a range reported at exactly max_range must not round into a hit
-    no_return = valid & (length >= max_range * (1.0 - 1e-9))
+    no_return = valid & (length >= max_range * (1.0 - NO_RETURN_RTOL))
     is_hit = valid & ~no_return
     direction = np.zeros_like(vec)
     direction[valid] = vec[valid] / length[valid, None]

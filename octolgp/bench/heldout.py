@@ -26,15 +26,13 @@ from sklearn.metrics import roc_auc_score
 
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.scan import Scan, as_points
+from octolgp.scan import NO_RETURN_RTOL, Scan, as_points
 from octolgp.training import stack_beams
 
 IntArray = NDArray[np.int64]
 FloatArray = NDArray[np.float64]
 LabelArray = NDArray[np.int8]
 
-NO_RETURN_RTOL = 1e-9
-"""A beam at least ``max_range * (1 - NO_RETURN_RTOL)`` long is a no-return, as in training."""
 
 MIN_BEAM_LENGTH = 1e-9
 """Beams this short (metres) carry no direction and give no test points."""

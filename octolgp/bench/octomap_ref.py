@@ -31,15 +31,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.scan import Scan, as_points
+from octolgp.scan import NO_RETURN_RTOL, Scan, as_points
 
 FloatArray = NDArray[np.float64]
 
 TREE_MAX_VAL = 1 << 15
 """OctoMap's ``tree_max_val``: the key of coordinate 0 on each axis (depth 16)."""
 
-NO_RETURN_RTOL = 1e-9
-"""A beam at least ``max_range * (1 - NO_RETURN_RTOL)`` long is a no-return, as in training."""
 
 MIN_BEAM_LENGTH = 1e-9
 """Beams this short (metres) carry no direction and are not inserted, as in training."""

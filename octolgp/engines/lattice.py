@@ -102,16 +102,14 @@ class LatticeEvidence:
 
 def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
     """The lattice engine's evidence of a leaf (raises ``TypeError`` on another engine's)."""
-    ev = leaf.evidence
-    if not isinstance(ev, LatticeEvidence):
-        raise TypeError(f"leaf holds {type(ev).__name__}, not the lattice engine's evidence")
-    return ev
+    return lattice_evidence_of(leaf.evidence)
 
 
 def lattice_evidence_of(evidence: object) -> LatticeEvidence:
     """``evidence`` as the lattice engine's (raises ``TypeError`` on another engine's)."""
     if not isinstance(evidence, LatticeEvidence):
-        raise TypeError(f"expected LatticeEvidence, got {type(evidence).__name__}")
+        name = type(evidence).__name__
+        raise TypeError(f"leaf holds {name}, not the lattice engine's evidence")
     return evidence
 
 

@@ -93,11 +93,6 @@ FIT_CHUNK = 2048
 of this many, whose stacked counts, returns and values stay small enough for the caches
 (a sparse street's 32,000 pending leaves fitted at once took twice as long)."""
 
-RELEASE_EVICTIONS = 1
-"""A budgeted map hands the heap's freed pages back to the OS once this many leaves have
-been evicted since it last did: at every step that evicts (less often holds more RAM for
-less time; BENCHMARKS.md, "Memory: does the budget bound the process?")."""
-
 R = TypeVar("R")
 
 
@@ -211,7 +206,6 @@ class OnlineMap(MapReads):
         self._closed = False
         self._broken: str | None = None  # why the map refuses every call
         self._writes = 0  # steps applied to the store
-        self._released = 0  # store evictions when freed heap pages were last handed back
         self.read_only = storage is not None and storage.read_only
         self._file: MapStorage | None = storage
         if storage is not None:
@@ -314,22 +308,23 @@ class OnlineMap(MapReads):
             own = None if f is None else f.path
             leaves = self.leaves()  # none while learning: the file keeps the buffered scans
             hp, n = self.hyperparameters, self.n_scans
-            if f is None:
-                journal = enumerate(self._bootstrap.scans, start=1)
-                write_map(path, self.config, hp, n, leaves, journal, overwrite=overwrite)
-            else:
-                write_map(
-                    path,
-                    self.config,
-                    hp,
-                    n,
-                    leaves,
-                    f.journal(f.journal_start),
-                    checkpoints=f.checkpoints,
-                    checkpoint_rows=f.checkpoint_rows(),
-                    overwrite=overwrite,
-                    own=own,
-                )
+            journal = (
+                enumerate(self._bootstrap.scans, start=1)
+                if f is None
+                else f.journal(f.journal_start)
+            )
+            write_map(
+                path,
+                self.config,
+                hp,
+                n,
+                leaves,
+                journal,
+                checkpoints=None if f is None else f.checkpoints,
+                checkpoint_rows=() if f is None else f.checkpoint_rows(),
+                overwrite=overwrite,
+                own=own,
+            )
 
     def close(self) -> None:
         """Release worker threads and the map file; every later call is refused.
@@ -1035,16 +1030,13 @@ class OnlineMap(MapReads):
             raise
 
     def _trim(self) -> None:
-        """Trim the store to its budget; hand the heap's freed pages back now and then.
+        """Trim the store to its budget, and hand the heap's freed pages back if it evicted.
 
         Evicted leaves' arrays go back to the C heap, whose free pages glibc keeps
-        resident (:mod:`octolgp.memory`): without ``malloc_trim`` a budgeted map's process
-        holds about 40 % more than its leaves. The pages go back once every
-        :data:`RELEASE_EVICTIONS` evicted leaves (each call walks the heap).
+        resident (:mod:`octolgp.memory`); without ``malloc_trim`` a budgeted map's
+        process holds them beside its leaves.
         """
-        self.store.trim()
-        if self.store.evictions - self._released >= RELEASE_EVICTIONS:
-            self._released = self.store.evictions
+        if self.store.trim():
             release_free_memory()
 
     def _fit(

@@ -48,8 +48,9 @@ def query_points(points: object, config: MapConfig) -> FloatArray:
 
 
 QUERY_CHUNK = 1 << 16
-"""Points a query handles at once: its temporaries (the ``2**d`` corners of each point
-and their values) stay a few megabytes whatever the query's size."""
+"""Points a query (:class:`MapReads`) handles at once: its temporaries (the ``2**d``
+corners of each point, their values, the probabilities) stay a few tens of megabytes
+whatever the query's size."""
 
 
 def lookup(
@@ -73,12 +74,6 @@ def lookup(
     """
     out = [np.full(X.shape[0], np.nan) for _ in fields]
     if X.shape[0] == 0 or len(store) == 0:
-        return out
-    if X.shape[0] > QUERY_CHUNK:  # bounded temporaries for a large query
-        for lo in range(0, X.shape[0], QUERY_CHUNK):  # one chunk of points per iteration
-            part = lookup(store, grid, X[lo : lo + QUERY_CHUNK], fields)
-            for arr, values in zip(out, part, strict=True):
-                arr[lo : lo + QUERY_CHUNK] = values
         return out
     order, keys, bounds = group_keys(grid.pack(grid.leaf_of(X)))
     for j, key in enumerate(keys.tolist()):  # one iteration per leaf queried
@@ -109,15 +104,6 @@ def interpolate(
     known : ndarray of bool, shape (q,)
         Points whose own voxel holds a value.
     """
-    if X.shape[0] > QUERY_CHUNK:  # bounded temporaries: 2**d corners a point
-        mean, var = np.empty(X.shape[0]), np.empty(X.shape[0])
-        known = np.empty(X.shape[0], dtype=bool)
-        for lo in range(0, X.shape[0], QUERY_CHUNK):  # one chunk of points per iteration
-            hi = lo + QUERY_CHUNK
-            mean[lo:hi], var[lo:hi], known[lo:hi] = interpolate(
-                store, grid, config, prior, X[lo:hi]
-            )
-        return mean, var, known
     d = config.dim
     res = config.resolution
     (own,) = lookup(store, grid, X, ("mean",))
@@ -239,13 +225,21 @@ class MapReads:
             (``σf² = 1`` before hyperparameters exist).
         """
         X = query_points(points, self.config)
+        mean, var = np.empty(X.shape[0]), np.empty(X.shape[0])
         with self._reading(X) as m:
             prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
-            if not interpolate:
-                mean, var = lookup(m.store, m.grid, X, ("mean", "var"))
-                return np.where(np.isnan(mean), 0.0, mean), np.where(np.isnan(var), prior, var)
-            mean, var, known = interpolate_latent(m, X)
-        return np.where(known, mean, 0.0), np.where(known, var, prior)
+            for lo in range(0, X.shape[0], QUERY_CHUNK):  # bounded temporaries, chunk by chunk
+                part, at = X[lo : lo + QUERY_CHUNK], slice(lo, lo + QUERY_CHUNK)
+                if not interpolate:
+                    mu, s2 = lookup(m.store, m.grid, part, ("mean", "var"))
+                    mean[at], var[at] = (
+                        np.where(np.isnan(mu), 0.0, mu),
+                        np.where(np.isnan(s2), prior, s2),
+                    )
+                else:
+                    mu, s2, known = interpolate_latent(m, part)
+                    mean[at], var[at] = np.where(known, mu, 0.0), np.where(known, s2, prior)
+        return mean, var
 
     def voxel_centres(self, leaf: Leaf) -> FloatArray:
         """Centres of a leaf's voxels, shape (V, d), in the order of its value arrays."""

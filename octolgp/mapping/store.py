@@ -193,19 +193,14 @@ class MapHeader:
     checkpoints : list of int
         Scan counts at which the file keeps the evidence of the leaves changed since
         (``OnlineConfig.journal_scans``), ascending; the journal holds the scans after
-        the first (after scan 0 where there is none).
+        the first.
     """
 
     config: MapConfig
     hyperparameters: Hyperparameters | None
     n_scans: int
     leaf_keys: list[int]
-    checkpoints: list[int] = field(default_factory=list)
-
-    @property
-    def journal_start(self) -> int:
-        """The journal holds the scans after this one."""
-        return self.checkpoints[0] if self.checkpoints else 0
+    checkpoints: list[int] = field(default_factory=lambda: [0])
 
 
 class MapStorage(LeafBacking, Protocol):

@@ -84,8 +84,7 @@ _COMPACT_HEADER = struct.Struct("<4sBBBxqqq")  # magic, record, dim, flags, key,
 _VALUES = 1  # flag: the voxel values are stored (engines whose fits are not cheap)
 _PRUNED = 2  # flag: the stored values are one value
 _FOREIGN = 4  # flag: the stored values are not the engine's fit of the evidence
-_COUNT = struct.Struct("<q")
-_COUNTS = struct.Struct("<q")  # record 2: halo voxels of the count arrays
+_COUNT = struct.Struct("<q")  # record 2: halo voxels of the counts; 5: voxel values
 _SCAN_COLUMNS = "idx, dim, origin, points, max_range, stamp"
 ENCODE_BATCH = 4096
 """Leaves encoded together when a step writes them (bounded temporaries)."""
@@ -102,16 +101,16 @@ def encode_leaf(leaf: Leaf, engine: LeafEngine) -> bytes:
 
 
 def encode_leaves(leaves: list[Leaf], engine: LeafEngine) -> list[bytes]:
-    """A leaf as bytes: a header, its voxel values where they must be kept, its evidence.
+    """Leaves as bytes: a header, the voxel values where they must be kept, the evidence.
 
-    Little-endian: the 32-byte header (magic, record 5, dimension, flags, the leaf's
-    packed key, refits, touched); with the ``_VALUES`` flag the number of voxel values (int64) and the mean,
-    variance and P(occupied) (float32); the engine's record of the evidence
-    (:meth:`LeafEngine.record`) compressed with zlib; the CRC-32 of everything before it
-    (uint32). An engine whose values are a function of
-    its evidence (:attr:`LeafEngine.values_from_evidence`) keeps no values: a leaf read
-    back is fitted again, and a leaf waiting for its fit (``leaf.pending``) can be
-    written; values set another way (``leaf.fitted`` false) are kept with the
+    Per leaf, little-endian: the 32-byte header (magic, record 5, dimension, flags, the
+    leaf's packed key, refits, touched); with the ``_VALUES`` flag the number of voxel
+    values (int64) and the mean, variance and P(occupied) (float32); the engine's record
+    of the evidence (:meth:`LeafEngine.records`, all leaves at once) compressed with
+    zlib; the CRC-32 of everything before it (uint32). An engine whose values are a
+    function of its evidence (:attr:`LeafEngine.values_from_evidence`) keeps no values:
+    a leaf read back is fitted again, and a leaf waiting for its fit (``leaf.pending``)
+    can be written; values set another way (``leaf.fitted`` false) are kept with the
     ``_FOREIGN`` flag. An engine that keeps values refuses a pending leaf (``ValueError``).
     """
     if not leaves:
@@ -143,8 +142,8 @@ def encode_leaves(leaves: list[Leaf], engine: LeafEngine) -> list[bytes]:
 def decode_leaf(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
     """Inverse of :func:`encode_leaf` (records 1 to 4 too); ``OctolgpError`` if corrupt.
 
-    A leaf stored without its voxel values
-    comes back with none and ``pending`` set: the map fits it before reading it.
+    A leaf stored without its voxel values comes back with none and ``pending`` set:
+    the map fits it before reading it.
     """
     if len(blob) < 5:
         raise OctolgpError("leaf record is truncated")
@@ -224,10 +223,10 @@ def _decode_old(blob: bytes, engine: LeafEngine, grid: LeafGrid) -> Leaf:
     at = _OLD_HEADER.size
     n_counts = 0
     if version == 2:
-        if len(blob) < at + _COUNTS.size:
+        if len(blob) < at + _COUNT.size:
             raise OctolgpError("leaf record is truncated")
-        (n_counts,) = _COUNTS.unpack_from(blob, at)
-        at += _COUNTS.size
+        (n_counts,) = _COUNT.unpack_from(blob, at)
+        at += _COUNT.size
         if n_counts < 0:
             raise OctolgpError("leaf record has a bad header")
     specs = [(d, "<i8"), (h * d, "<f8"), (h, "<i8"), (s * d, "<f8"), (s * d, "<f8")]
@@ -405,7 +404,7 @@ class MapFile:
         self._depth = 0  # open write transactions (nested ones join the outer)
         self._n_scans = header.n_scans
         self._checkpoint_table = _has_table(con, "checkpoint_leaves")
-        self._checkpoints = list(header.checkpoints) or [0]
+        self._checkpoints = list(header.checkpoints)
         self._window = header.config.online.journal_scans
         self._wrote = created  # a writer that wrote leaves the file in rollback-journal mode
         self._crc_column, self._codec_column = _scan_columns(con)
@@ -692,7 +691,6 @@ class MapFile:
 
         Returns the keys written.
         """
-        written = []
         engine = self._engine
         leaves = list(leaves)
         with self.transaction() as con:
@@ -719,9 +717,11 @@ class MapFile:
         state then (none: no leaf then). Checkpoint 0 is the empty map; ``skip``:
         checkpoints whose rows the caller writes.
         """
+        if self._window is None or not keys:
+            return
         skipped = {0, *skip}
         for c in self._checkpoints:  # at most three: the journal's start and later ones
-            if self._window is None or c in skipped or not keys:
+            if c in skipped:
                 continue
             con.executemany(
                 "INSERT OR IGNORE INTO checkpoint_leaves(checkpoint, key, data) "
@@ -791,18 +791,18 @@ class MapFile:
         latest checkpoint, if not among them, the leaves' rows are kept as a step keeps
         them. Returns the leaf keys written.
         """
-        written = []
         engine = self._engine
         leaves, removed = list(leaves), [int(k) for k in removed]
         checkpointed = checkpointed or {}
         with self.transaction() as con:
             for c, rows in checkpointed.items():  # one checkpoint per iteration
+                held = [(int(k), leaf) for k, leaf in rows.items() if leaf is not None]
+                blobs = encode_leaves([leaf for _, leaf in held], engine)
+                data: dict[int, bytes | None] = {int(k): None for k in rows}
+                data.update((k, blob) for (k, _), blob in zip(held, blobs, strict=True))
                 con.executemany(
                     "INSERT OR REPLACE INTO checkpoint_leaves VALUES (?, ?, ?)",
-                    (
-                        (c, int(k), None if leaf is None else encode_leaf(leaf, engine))
-                        for k, leaf in rows.items()
-                    ),
+                    ((c, k, blob) for k, blob in data.items()),
                 )
             keys = [k for k, _ in leaves] + removed
             if self._checkpoints[-1] == self._n_scans:  # the rebuilt rows are its state
