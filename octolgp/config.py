@@ -357,13 +357,15 @@ class OnlineConfig:
         hyperparameters (the file keeps a lattice leaf's evidence, not its values).
         Otherwise leaves are fitted in ``insert_scan``. Default True.
     scan_precision : float or None
-        Metres to which a scan's returns are rounded as it is inserted: each return's
-        offset from the sensor becomes a whole number of steps (no-return beams keep
-        their points). It is part of the map's definition: the map is built from the
-        rounded scans, and the map file's journal stores them compactly and exactly
-        (zlib of the steps' differences, about 3 bytes a point of a filtered lidar
-        scan at 0.01 m, against 24), so a pose correction replays what the map was
-        built from. ``None``: scans are kept as given (float64; files written before
+        Metres to which a scan's beams are rounded as it is inserted: each beam's
+        offset from the sensor becomes a whole number of steps (a beam that rounding
+        would carry across ``max_range`` goes a step further along itself, so it keeps
+        its kind), and the beams are sorted by their steps. It is part of the map's
+        definition: the map is built from the rounded scans, and the map file's
+        journal stores them compactly and exactly (zlib of the sorted steps'
+        differences, about 2 bytes a point of a filtered lidar scan at 0.01 m, against
+        24), so a pose correction replays what the map was built from. ``None``: scans
+        are kept as given (float64; files written before
         this setting). Default 0.01.
     journal_scans : int or None
         How many of the latest scans a map file's journal keeps for pose corrections

@@ -59,40 +59,53 @@ NO_RETURN_RTOL = 1e-9
 reported at exactly ``max_range`` must not round into a hit)."""
 
 
-def scan_steps(scan: Scan, precision: float) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
-    """Each return's offset from the sensor in whole steps of ``precision`` metres.
+def scan_steps(scan: Scan, precision: float) -> NDArray[np.int64]:
+    """Each beam's offset from the sensor in whole steps of ``precision`` metres.
+
+    A return's step is ``round((point - origin) / precision)`` per axis. A beam whose
+    rounded length would cross ``max_range * (1 - NO_RETURN_RTOL)`` (a no-return that
+    would shrink into a hit, or a return that would grow into a no-return) is rounded
+    one step further out (no-returns) or in (returns) along its own direction, so no
+    beam changes kind; it then moves by at most two steps. Lengths are decided on the
+    integer steps with a margin of a hundredth of a step, so rounding the rounded scan
+    gives the same steps.
 
     Returns
     -------
-    steps : ndarray of int64, shape (n, d)
-        ``round((point - origin) / precision)`` per axis; zero where the point is kept.
-    kept : ndarray of bool, shape (n,)
-        Points that keep their value: no-return beams, and returns that rounding would
-        carry to ``max_range`` (they would read as no-returns).
+    ndarray of int64, shape (n, d)
     """
-    steps = np.round((scan.points - scan.origin) / precision)
-    kept = np.zeros(len(scan), dtype=bool)
+    offset = scan.points - scan.origin
+    steps = np.round(offset / precision)
     if scan.max_range is not None:
         limit = scan.max_range * (1.0 - NO_RETURN_RTOL)
-        rounded = scan.origin + steps * precision
-        kept = (np.linalg.norm(scan.points - scan.origin, axis=1) >= limit) | (
-            np.linalg.norm(rounded - scan.origin, axis=1) >= limit
-        )
-        steps[kept] = 0
-    return steps.astype(np.int64), kept
+        margin = 0.01 * precision
+        length = np.linalg.norm(offset, axis=1)
+        after = np.linalg.norm(steps, axis=1) * precision
+        no_return = length >= limit
+        out = no_return & (after < limit + margin)
+        inward = ~no_return & (after > limit - margin)
+        for moved, sign in ((out, 1.0), (inward, -1.0)):  # two passes, vectorised
+            if moved.any():
+                r = length[moved, None]
+                steps[moved] = np.round(offset[moved] / r * (r + sign * precision) / precision)
+    return steps.astype(np.int64)
 
 
-def points_from_steps(
-    origin: FloatArray,
-    steps: NDArray[np.int64],
-    kept: NDArray[np.bool_],
-    kept_points: FloatArray,
-    precision: float,
-) -> FloatArray:
-    """Inverse of :func:`scan_steps`: ``origin + steps * precision``, the kept points as given."""
+def points_from_steps(origin: FloatArray, steps: NDArray[np.int64], precision: float) -> FloatArray:
+    """Inverse of :func:`scan_steps`: ``origin + steps * precision``, (n, d) float64."""
     out: FloatArray = origin + steps.astype(np.float64) * precision
-    out[kept] = kept_points
     return out
+
+
+def canonical_order(steps: NDArray[np.int64]) -> NDArray[np.intp]:
+    """The order of a rounded scan's beams by their steps, the last axis (height) first.
+
+    A map with ``scan_precision`` is built from its scans' beams in this order, which
+    is a function of the beams alone: the journal stores them sorted, where
+    neighbouring beams' steps differ least.
+    """
+    order: NDArray[np.intp] = np.lexsort(steps.T)
+    return order
 
 
 def check_scan_size(scan: Scan, limit: int, field: str = "OnlineConfig.max_scan_points") -> None:
@@ -325,18 +338,23 @@ class Scan:
         return cls(*points, stamp)
 
     def rounded(self, precision: float) -> Scan:
-        """The scan with each return rounded to whole ``precision`` steps from the sensor.
+        """The scan on a grid of ``precision`` steps from the sensor, beams in canonical order.
 
-        No-return beams, and returns that rounding would carry to ``max_range``, keep
-        their points. Rounding a rounded scan returns it unchanged, bit for bit.
+        Each return moves by at most half a step per axis; a beam that rounding would
+        carry across ``max_range`` (a no-return that would become a hit, or the reverse)
+        is rounded a step further along its own direction instead (see
+        :func:`scan_steps`), so every beam keeps its kind. The beams are then sorted by
+        their steps (:func:`canonical_order`). Rounding a rounded scan returns it
+        unchanged, bit for bit.
 
         Parameters
         ----------
         precision : float
             Step, metres (> 0).
         """
-        steps, kept = scan_steps(self, precision)
-        points = points_from_steps(self.origin, steps, kept, self.points[kept], precision)
+        steps = scan_steps(self, precision)
+        steps = steps[canonical_order(steps)]
+        points = points_from_steps(self.origin, steps, precision)
         return Scan(origin=self.origin, points=points, max_range=self.max_range, stamp=self.stamp)
 
     def downsample(self, voxel: float) -> Scan:

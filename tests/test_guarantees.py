@@ -357,9 +357,9 @@ def test_flipped_bytes_in_a_journaled_scan_are_an_error_naming_the_scan(tmp_path
         m.insert_scans(SCANS[:3])
     con = sqlite3.connect(path)
     (points,) = con.execute("SELECT points FROM scans WHERE idx=2").fetchone()
-    moved = np.frombuffer(points, "<f8").copy()
-    moved[10] += 5.0  # a point moved by 5 m
-    con.execute("UPDATE scans SET points=? WHERE idx=2", (moved.tobytes(),))
+    flipped = bytearray(points)
+    flipped[len(flipped) // 2] ^= 0x10  # one bit of the stored points
+    con.execute("UPDATE scans SET points=? WHERE idx=2", (bytes(flipped),))
     con.commit()
     con.close()
     with (

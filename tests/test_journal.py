@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import sqlite3
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,7 @@ from octolgp.geometry.keys import pack_keys, return_steps, step_points
 from octolgp.mapping.correction import transform_scan
 from octolgp.mapping.grid import LeafGrid
 from octolgp.persist.journal import decode_points, encode_points
+from octolgp.scan import canonical_order, scan_steps
 from octolgp.sim.lidar3d import simulate_lidar_room
 
 HP = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
@@ -50,15 +53,21 @@ def test_rounding_is_idempotent_and_the_journal_exact(
 ) -> None:
     scan = _scan(seed, n, max_range, dim)
     rounded = scan.rounded(precision)
-    # each return moves by at most half a step per axis; no-returns keep their points
-    assert np.abs(rounded.points - scan.points).max() <= 0.5 * precision * (1 + 1e-6) + 1e-9
+    order = canonical_order(scan_steps(scan, precision))
+    before = scan.points[order]  # each rounded beam beside the beam it came from
+    steps = np.round((rounded.points - rounded.origin) / precision)
+    assert np.array_equal(np.lexsort(steps.T), np.arange(n))  # sorted, last axis first
+    assert np.abs(rounded.points - before).max() <= 2 * precision * (1 + 1e-6)
     assert np.array_equal(rounded.rounded(precision).points, rounded.points)
+    length = np.linalg.norm(before - scan.origin, axis=1)
+    far = np.ones(n, dtype=bool)
     if max_range is not None:
         limit = max_range * (1 - 1e-9)
-        length = np.linalg.norm(scan.points - scan.origin, axis=1)
         after = np.linalg.norm(rounded.points - rounded.origin, axis=1)
         assert np.array_equal(length >= limit, after >= limit)  # no beam changes kind
-        assert np.array_equal(rounded.points[length >= limit], scan.points[length >= limit])
+        far = np.abs(length - limit) > 2 * precision
+    # a beam away from max_range moves by at most half a step per axis
+    assert np.abs(rounded.points - before)[far].max(initial=0) <= 0.5 * precision * (1 + 1e-6)
     blob = encode_points(rounded, precision)
     back = decode_points(blob, rounded.origin, dim)
     assert back.tobytes() == rounded.points.tobytes()
@@ -244,3 +253,27 @@ def test_lattice_records_round_trip_and_the_batch_encoder_writes_the_same_bytes(
         assert c.tobytes() == counts.tobytes()
         assert k.tobytes() == keys.tobytes()
         assert p.tobytes() == np.asarray(points, dtype=np.float64).tobytes()
+
+
+def test_a_version_5_blob_with_kept_points_reads_back() -> None:
+    """Files of version 5 kept no-return beams as float64 and stored 4-byte steps."""
+    origin = np.array([1.5, -2.0, 0.25])
+    steps = np.array([[3, -4, 5], [0, 0, 0], [-7, 2, 1]], dtype=np.int64)
+    kept = np.array([False, True, False])
+    kept_point = np.array([[31.123456789, 2.0, -0.5]])
+    diffs = np.diff(steps.T, axis=1, prepend=0)
+    shuffled = (
+        np.ascontiguousarray(diffs.astype("<i4")).view(np.uint8).reshape(3, 3, 4).transpose(0, 2, 1)
+    )
+    raw = b"".join(
+        [
+            struct.pack("<dIIB", 0.01, 3, 1, 4),
+            np.packbits(kept, bitorder="little").tobytes(),
+            kept_point.astype("<f8").tobytes(),
+            np.ascontiguousarray(shuffled).tobytes(),
+        ]
+    )
+    back = decode_points(zlib.compress(raw), origin, 3)
+    want = origin + steps * 0.01
+    want[1] = kept_point[0]
+    assert back.tobytes() == want.tobytes()

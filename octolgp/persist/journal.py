@@ -1,18 +1,21 @@
 """A journaled scan's points, compactly and exactly: the steps of a rounded scan.
 
 A map with ``OnlineConfig.scan_precision`` is built from scans rounded to whole steps
-from the sensor (:meth:`octolgp.Scan.rounded`), so the journal can keep the steps
-instead of the float64 points and still give back exactly what the map was built from.
-The blob, before zlib:
+from the sensor, their beams sorted by their steps (:meth:`octolgp.Scan.rounded`), so
+the journal can keep the steps instead of the float64 points and still give back
+exactly what the map was built from. The blob, before zlib:
 
 - a header: the step in metres (float64), points ``n`` (uint32), kept points ``k``
-  (uint32), bytes per step difference ``w`` (uint8: 4, or 8 for steps too far apart);
+  (uint32), bytes per step difference ``w`` (uint8: 2, 4 or 8, the fewest that hold
+  them);
 - a bitmap of the kept points (``np.packbits``, little bit order) and their
-  coordinates (float64, ``k`` x d): no-return beams keep their points;
+  coordinates (float64, ``k`` x d): points stored as given. Scans rounded by this
+  version keep none (``k = 0``); files of version 5
+  kept their no-return beams so;
 - per axis, the differences of consecutive points' steps (the first from zero), in
   ``w``-byte integers, the bytes of each significance stored together (a byte
-  shuffle): neighbouring beams of a lidar scan have close steps, so the differences
-  are small and most of their high bytes zero, which zlib packs tightly.
+  shuffle): sorted beams have close steps, so the differences are small and most of
+  their high bytes zero, which zlib packs tightly.
 """
 
 from __future__ import annotations
@@ -48,13 +51,12 @@ def encode_points(scan: Scan, precision: float) -> bytes:
     ``scan`` must be rounded to ``precision`` (``scan.rounded(precision)``); its points
     then read back bit for bit (:func:`decode_points`).
     """
-    steps, kept = scan_steps(scan, precision)
-    diffs = np.diff(steps.T, axis=1, prepend=0)
-    width = 4 if np.abs(diffs).max(initial=0) < 2**31 else 8
+    diffs = np.diff(scan_steps(scan, precision).T, axis=1, prepend=0)
+    top = int(np.abs(diffs).max(initial=0))
+    width = next(w for w in (2, 4, 8) if top < 2 ** (8 * w - 1))
     parts = [
-        _HEAD.pack(precision, len(scan), int(kept.sum()), width),
-        np.packbits(kept, bitorder="little").tobytes(),
-        scan.points[kept].astype("<f8").tobytes(),
+        _HEAD.pack(precision, len(scan), 0, width),
+        np.packbits(np.zeros(len(scan), dtype=bool), bitorder="little").tobytes(),
         _shuffled(diffs, width),
     ]
     return zlib.compress(b"".join(parts), 6)
@@ -76,7 +78,7 @@ def decode_points(blob: bytes, origin: FloatArray, dim: int) -> FloatArray:
         raise OctolgpError("journaled points are truncated")
     precision, n, k, width = _HEAD.unpack_from(raw)
     n_bits = (n + 7) // 8
-    if width not in (4, 8) or not precision > 0 or k > n:
+    if width not in (2, 4, 8) or not precision > 0 or k > n:
         raise OctolgpError("journaled points have a bad header")
     if len(raw) != _HEAD.size + n_bits + 8 * k * dim + dim * n * width:
         raise OctolgpError("journaled points have the wrong length")
@@ -89,4 +91,6 @@ def decode_points(blob: bytes, origin: FloatArray, dim: int) -> FloatArray:
     kept_points = np.frombuffer(raw, "<f8", k * dim, at).reshape(k, dim)
     at += 8 * k * dim
     steps = np.cumsum(_unshuffled(raw[at:], dim, n, width), axis=1).T
-    return points_from_steps(origin, steps, kept, kept_points, precision)
+    points = points_from_steps(origin, steps, precision)
+    points[kept] = kept_points
+    return points
