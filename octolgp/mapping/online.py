@@ -522,6 +522,7 @@ class OnlineMap(MapReads):
             return update
         learning = self._learn_on_buffer()
         self._bootstrap.take()
+        release_free_memory()  # the learning's and the buffer's arrays, freed at once
         stages = {**update.stages, "learning": learning}
         return dataclasses.replace(
             update, buffered=False, stages=stages, seconds=update.seconds + learning
@@ -536,6 +537,7 @@ class OnlineMap(MapReads):
             return None
         learning = self._learn_on_buffer()
         update = self._step(self._bootstrap.take(), journal, t0)
+        release_free_memory()  # the learning's and the buffer's arrays, freed at once
         update.stages["learning"] = learning
         return update
 
@@ -633,15 +635,15 @@ class OnlineMap(MapReads):
     def _settle(self, keys: list[int] | None = None) -> int:
         """Fit pending leaves (``keys``, or all), every tile of each; store them unstamped.
 
-        A map with a file settles them ``FIT_CHUNK`` at a time, trimming the store to
-        its budget after each chunk: its pending leaves may have been evicted, and are
-        loaded back only as they are fitted.
+        Leaves are settled a chunk at a time (``FIT_CHUNK``, or the store's batch under
+        a budget), so a read after many inserts holds one chunk's fit at a time; a map
+        with a file trims the store to its budget after each chunk.
         """
         keys = self.store.pending if keys is None else keys
         if not keys or self.hyperparameters is None:  # nothing to fit with while learning
             return 0
         done = 0
-        step = len(keys) if self._file is None else FIT_CHUNK
+        step = self._fit_chunk
         with collector_paused():
             for lo in range(0, len(keys), step):  # one chunk of pending leaves per iteration
                 part = keys[lo : lo + step]
@@ -1030,14 +1032,17 @@ class OnlineMap(MapReads):
             raise
 
     def _trim(self) -> None:
-        """Trim the store to its budget, and hand the heap's freed pages back if it evicted.
+        """Trim the store to its budget, then hand the heap's free pages back.
 
-        Evicted leaves' arrays go back to the C heap, whose free pages glibc keeps
-        resident (:mod:`octolgp.memory`); without ``malloc_trim`` a budgeted map's
-        process holds them beside its leaves.
+        A step's arrays and evicted leaves' arrays go back to the C heap, whose free
+        pages glibc keeps resident (:mod:`octolgp.memory`): without ``malloc_trim`` a
+        budgeted map's process holds them beside its leaves, about as much again as
+        the leaves while the map grows to its budget. Under a millisecond a step.
         """
-        if self.store.trim():
-            release_free_memory()
+        if self.store.budget_bytes is None:
+            return
+        self.store.trim()
+        release_free_memory()
 
     def _fit(
         self,
@@ -1057,13 +1062,23 @@ class OnlineMap(MapReads):
         pool = self._workers.pool(len(leaves))
         fits: list[LeafFit] = []
         with self._workers.one_blas_thread():
-            for lo in range(0, len(leaves), FIT_CHUNK):  # one chunk of leaves per iteration
-                hi = lo + FIT_CHUNK
+            size = self._fit_chunk
+            for lo in range(0, len(leaves), size):  # one chunk of leaves per iteration
+                hi = lo + size
                 part = None if fresh is None else fresh[lo:hi]
                 fits += self.engine.fit(leaves[lo:hi], hp, pool, reuse=reuse, fresh=part)
         if stages is not None:
             stages["fit"] = stages.get("fit", 0.0) + time.perf_counter() - t
         return fits
+
+    @property
+    def _fit_chunk(self) -> int:
+        """Leaves fitted per engine call: :data:`FIT_CHUNK`, or under a budget fewer.
+
+        Under a memory budget the store's batch, so that a fit's working set stays
+        within a share of the budget.
+        """
+        return FIT_CHUNK if self.store.budget_bytes is None else self.store.batch
 
     def _update(
         self,

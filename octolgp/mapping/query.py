@@ -76,8 +76,12 @@ def lookup(
     if X.shape[0] == 0 or len(store) == 0:
         return out
     order, keys, bounds = group_keys(grid.pack(grid.leaf_of(X)))
-    for j, key in enumerate(keys.tolist()):  # one iteration per leaf queried
-        leaf = store.peek(key)
+    key_list, size = keys.tolist(), store.batch
+    batch: list[Leaf | None] = []
+    for j in range(len(key_list)):  # one iteration per leaf queried
+        if j % size == 0:  # evicted leaves read and fitted a batch at a time
+            batch = store.peek_many(key_list[j : j + size])
+        leaf = batch[j % size]
         if leaf is None or leaf.prob.size == 0:
             continue
         sel = order[bounds[j] : bounds[j + 1]]

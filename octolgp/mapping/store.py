@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from octolgp.memory import release_free_memory
 from octolgp.training import IntArray
 
 if TYPE_CHECKING:
@@ -164,6 +165,11 @@ _LEAF_FIELDS = frozenset(
 
 READ_BATCH = 512
 """Evicted leaves read (and fitted, where stored without values) together when iterating."""
+
+FIT_BYTES_PER_LEAF = 54_000
+"""About the bytes fitting one leaf holds while it runs (a 3D lattice leaf: its tiles'
+counts, returns and posteriors; measured), which sizes :attr:`LeafStore.batch` under a
+budget."""
 
 
 class LeafBacking(Protocol):
@@ -348,6 +354,33 @@ class LeafStore:
             self._pending.add(key)
         return leaf
 
+    @property
+    def batch(self) -> int:
+        """Leaves read or fitted together: :data:`READ_BATCH`, or under a budget fewer.
+
+        Under a budget at least 16, and so many that fitting them holds at most an
+        eighth of the budget.
+        """
+        if self.budget_bytes is None:
+            return READ_BATCH
+        return max(16, min(READ_BATCH, self.budget_bytes // (8 * FIT_BYTES_PER_LEAF)))
+
+    def peek_many(self, keys: list[int]) -> list[Leaf | None]:
+        """:meth:`peek` of many leaves: the evicted ones read and fitted together.
+
+        Under a budget the heap's free pages go back to the OS first (the leaves of an
+        earlier batch, dropped by the reader: :func:`octolgp.memory.release_free_memory`).
+        """
+        out = [self._leaves.get(int(k)) for k in keys]
+        missing = [j for j, leaf in enumerate(out) if leaf is None and int(keys[j]) in self._keys]
+        if missing and self.backing is not None:
+            if self.budget_bytes is not None:
+                release_free_memory()
+            read = self._with_values([self.backing.read_leaf(int(keys[j])) for j in missing])
+            for j, leaf in zip(missing, read, strict=True):
+                out[j] = leaf
+        return out
+
     def peek(self, key: int) -> Leaf | None:
         """The leaf without making it resident (a read for iteration)."""
         key = int(key)
@@ -439,6 +472,8 @@ class LeafStore:
     def trim(self) -> int:
         """Evict least recently used, persisted leaves until RAM is within budget.
 
+        An evicted leaf no longer waits for a fit: the backing gives it back as the file
+        holds it, and values it reads without are fitted then (:meth:`attach`).
         Returns the number of leaves evicted.
         """
         if self.budget_bytes is None or self.backing is None:
@@ -451,6 +486,7 @@ class LeafStore:
                 continue
             del self._leaves[key]
             self._nbytes -= self._sizes.pop(key)
+            self._pending.discard(key)
             evicted += 1
         self.evictions += evicted
         return evicted
@@ -458,11 +494,11 @@ class LeafStore:
     def items(self) -> Iterator[tuple[int, Leaf]]:
         """``(key, leaf)`` in ascending key order; evicted leaves are read, not kept.
 
-        Evicted leaves are read in batches of :data:`READ_BATCH`.
+        Evicted leaves are read in batches of :attr:`batch`.
         """
-        keys = sorted(self._keys)
-        for lo in range(0, len(keys), READ_BATCH):  # one batch of keys per iteration
-            batch = keys[lo : lo + READ_BATCH]
+        keys, size = sorted(self._keys), self.batch
+        for lo in range(0, len(keys), size):  # one batch of keys per iteration
+            batch = keys[lo : lo + size]
             found = {k: leaf for k in batch if (leaf := self._leaves.get(k)) is not None}
             missing = [k for k in batch if k not in found]
             if missing and self.backing is not None:

@@ -1,0 +1,80 @@
+"""The memory budget bounds the process: peak RSS over a small mission, in child processes.
+
+Each mission runs in a fresh interpreter (RSS is a property of a process): import, a
+one-scan warm-up (numba's compiled kernels, the lattice tables), then the *base* RSS;
+then 400 scans of a simulated 3D lidar mission into a map with and without a budget,
+a read, and the peak RSS (``ru_maxrss``). With a budget ``B`` the peak stays within
+``base + 1.5 B``; without one the same mission's peak passes that bound (so the check can
+fail), and both maps read the same.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+BUDGET_MB = 32.0
+
+CHILD = """
+import dataclasses, gc, hashlib, json, resource, sys
+from pathlib import Path
+
+import numpy as np
+
+from octolgp import Hyperparameters, MapConfig, OnlineMap
+from octolgp.sim.mission import simulate_mission3d
+
+
+def rss_mb():
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1e3
+    raise RuntimeError("no VmRSS")
+
+
+budget = None if sys.argv[1] == "none" else float(sys.argv[1])
+n = 400
+mission = simulate_mission3d(n + 5.0, seed=0, spacing=1.0, max_range=8.0)
+scans = [mission.scan(k).downsample(0.2) for k in range(n)]
+hp = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+config = MapConfig(dim=3, resolution=0.2, hyperparameters=hp)
+warm = OnlineMap(config)
+warm.insert_scan(scans[0])
+warm.occupancy(scans[0].points[:10])
+warm.close()
+del warm
+gc.collect()
+base = rss_mb()
+m = OnlineMap(dataclasses.replace(config, memory_budget_mb=budget))
+for s in scans:
+    m.insert_scan(s)
+probe = np.concatenate([s.points[::7] for s in scans[::10]])
+p = m.occupancy(probe)
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+digest = hashlib.sha256(np.round(p, 12).tobytes()).hexdigest()
+print(json.dumps({"rise": peak - base, "leaves": m.memory_bytes() / 1e6, "digest": digest}))
+"""
+
+
+def _mission(budget: str) -> dict[str, float | str]:
+    out = subprocess.run(
+        [sys.executable, "-c", CHILD, budget], capture_output=True, text=True, check=True
+    )
+    result: dict[str, float | str] = json.loads(out.stdout.strip().splitlines()[-1])
+    return result
+
+
+@pytest.mark.skipif(
+    not sys.platform.startswith("linux"), reason="reads /proc; ru_maxrss in kB on Linux"
+)
+def test_the_budget_bounds_the_peak_rss_of_a_mission() -> None:
+    bounded = _mission(str(BUDGET_MB))
+    free = _mission("none")
+    bound = 1.5 * BUDGET_MB
+    assert float(bounded["leaves"]) <= BUDGET_MB
+    assert float(bounded["rise"]) <= bound, bounded
+    assert float(free["rise"]) > bound, free  # the mission outgrows the bound without it
+    assert bounded["digest"] == free["digest"]  # the budget changes no value
