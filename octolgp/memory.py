@@ -1,4 +1,4 @@
-"""Handing freed heap memory back to the operating system.
+"""Handing freed heap memory back to the operating system, and reading the process's RSS.
 
 glibc's ``malloc`` keeps memory freed by a burst of large temporary arrays (the
 hyperparameter learning's kernel blocks, say) in its arenas instead of returning it:
@@ -6,6 +6,11 @@ after the first large ``free`` its mmap threshold rises to 32 MiB, so later arra
 come from the heap, whose free pages stay resident. ``malloc_trim(0)`` releases them.
 Elsewhere (musl, macOS, Windows) there is nothing to call and
 :func:`release_free_memory` does nothing.
+
+:func:`rss_mb`, :func:`peak_rss_mb` and :func:`reset_peak_rss` read Linux's
+``/proc/self``: the peak there (``VmHWM``) is this process's own, where
+``getrusage``'s ``ru_maxrss`` starts from the parent's RSS at ``fork`` (Linux carries it
+across ``exec``), so a child of a large process would report the parent's size.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import platform
 import sys
 from collections.abc import Callable
 from functools import lru_cache
+from pathlib import Path
 
 
 @lru_cache(maxsize=1)
@@ -46,3 +52,37 @@ def release_free_memory() -> bool:
     """
     trim = _malloc_trim()
     return bool(trim(0)) if trim is not None else False
+
+
+def _status_mb(field: str) -> float:
+    """A ``/proc/self/status`` field in MB (kB / 1000); NaN where there is none."""
+    try:
+        lines = Path("/proc/self/status").read_text().splitlines()
+    except OSError:
+        return float("nan")
+    for line in lines:  # a few dozen lines
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1e3
+    return float("nan")
+
+
+def rss_mb() -> float:
+    """The resident set size of this process now, MB (Linux; NaN elsewhere)."""
+    return _status_mb("VmRSS")
+
+
+def peak_rss_mb() -> float:
+    """The peak resident set size of this process since start or :func:`reset_peak_rss`, MB."""
+    return _status_mb("VmHWM")
+
+
+def reset_peak_rss() -> bool:
+    """Start :func:`peak_rss_mb` afresh from the current RSS (Linux 4.0+).
+
+    Returns whether it could (writing ``5`` to ``/proc/self/clear_refs``).
+    """
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        return False
+    return True

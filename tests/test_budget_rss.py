@@ -3,9 +3,13 @@
 Each mission runs in a fresh interpreter (RSS is a property of a process): import, a
 one-scan warm-up (numba's compiled kernels, the lattice tables), then the *base* RSS;
 then 400 scans of a simulated 3D lidar mission into a map with and without a budget,
-a read, and the peak RSS (``ru_maxrss``). With a budget ``B`` the peak stays within
-``base + 1.5 B``; without one the same mission's peak passes that bound (so the check can
-fail), and both maps read the same.
+a read of about 4,000 points, and the peak RSS since the base
+(``VmHWM``, reset at the base: :func:`octolgp.memory.reset_peak_rss`). With a budget ``B`` the
+peak stays within ``base + B + SLACK_MB``: the leaves are held to ``B`` and what comes on
+top (a step's working arrays, a batch of leaves fitted for a read, heap pages the C
+allocator cannot return) does not grow with ``B`` or with the mission; at ``B`` = 64 MB
+that is the ``1.5 B`` of ``tools/bench_budget_rss.py``. Without a budget the same
+mission's peak passes the bound (so the check can fail), and both maps read the same.
 """
 
 from __future__ import annotations
@@ -17,23 +21,16 @@ import sys
 import pytest
 
 BUDGET_MB = 32.0
+SLACK_MB = 32.0
 
 CHILD = """
-import dataclasses, gc, hashlib, json, resource, sys
-from pathlib import Path
+import dataclasses, gc, hashlib, json, sys
 
 import numpy as np
 
 from octolgp import Hyperparameters, MapConfig, OnlineMap
+from octolgp.memory import peak_rss_mb, reset_peak_rss, rss_mb
 from octolgp.sim.mission import simulate_mission3d
-
-
-def rss_mb():
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1e3
-    raise RuntimeError("no VmRSS")
-
 
 budget = None if sys.argv[1] == "none" else float(sys.argv[1])
 n = 400
@@ -48,12 +45,13 @@ warm.close()
 del warm
 gc.collect()
 base = rss_mb()
+assert reset_peak_rss()
 m = OnlineMap(dataclasses.replace(config, memory_budget_mb=budget))
 for s in scans:
     m.insert_scan(s)
 probe = np.concatenate([s.points[::7] for s in scans[::10]])
 p = m.occupancy(probe)
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
+peak = peak_rss_mb()
 digest = hashlib.sha256(np.round(p, 12).tobytes()).hexdigest()
 print(json.dumps({"rise": peak - base, "leaves": m.memory_bytes() / 1e6, "digest": digest}))
 """
@@ -68,12 +66,12 @@ def _mission(budget: str) -> dict[str, float | str]:
 
 
 @pytest.mark.skipif(
-    not sys.platform.startswith("linux"), reason="reads /proc; ru_maxrss in kB on Linux"
+    not sys.platform.startswith("linux"), reason="reads the RSS in /proc/self (Linux)"
 )
 def test_the_budget_bounds_the_peak_rss_of_a_mission() -> None:
     bounded = _mission(str(BUDGET_MB))
     free = _mission("none")
-    bound = 1.5 * BUDGET_MB
+    bound = BUDGET_MB + SLACK_MB
     assert float(bounded["leaves"]) <= BUDGET_MB
     assert float(bounded["rise"]) <= bound, bounded
     assert float(free["rise"]) > bound, free  # the mission outgrows the bound without it

@@ -368,16 +368,18 @@ ROOT = Path(__file__).resolve().parents[1]
 HUGE = 10**12
 
 RSS_PROBE = """
-import resource, sys
+import sys
 from octolgp.errors import OctolgpError
 from octolgp.io import load_scans
-before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+from octolgp.memory import peak_rss_mb, reset_peak_rss, rss_mb
+before = rss_mb()
+assert reset_peak_rss()  # the peak since now (ru_maxrss would start at pytest's RSS)
 try:
     list(load_scans(sys.argv[1]))
     print("read")
 except OctolgpError as exc:
     print("OctolgpError:", exc)
-grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+grown = round((peak_rss_mb() - before) * 1e3)
 print("grown_kib", grown)
 """
 

@@ -15,7 +15,8 @@ Missions (default config, each in a fresh child process per budget):
 The *base* is the RSS after importing octolgp and a one-scan warm-up: one scan inserted
 into a throwaway map with hyperparameters given, and read, so that the code's one-off
 costs (numba's compiler and compiled kernels, about 100 MB; the lattice tables) are in
-it. Then the mission's map is built scan by scan and the peak RSS read (``ru_maxrss``).
+it. Then the mission's map is built scan by scan and the peak RSS since the base read
+(``VmHWM``, reset at the base: :mod:`octolgp.memory`).
 The target: peak <= base + 1.5 x budget. The table gives the RSS right after the
 learning step, at the end, and whether it is flat over the second half (the largest
 rise of the RSS read every 50 scans over the second half), the leaves resident in RAM,
@@ -32,26 +33,12 @@ import gc
 import itertools
 import json
 import os
-import resource
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 FR079 = Path(__file__).resolve().parents[2] / "shared/data/fr079/freiburg-079-corrected.log.gz"
-
-
-def rss_mb() -> float:
-    """Current resident set size, MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1e3
-    return float("nan")
-
-
-def peak_mb() -> float:
-    """Peak resident set size of the process so far, MB."""
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3
 
 
 def mission(kind: str, scans: int):  # type: ignore[no-untyped-def]
@@ -71,6 +58,7 @@ def child(kind: str, scans: int, budget: str) -> None:
     import dataclasses
 
     from octolgp import Hyperparameters, OnlineMap
+    from octolgp.memory import peak_rss_mb, reset_peak_rss, rss_mb
 
     b = None if budget == "none" else float(budget)
     config, stream = mission(kind, scans)
@@ -82,6 +70,7 @@ def child(kind: str, scans: int, budget: str) -> None:
     del warm
     gc.collect()
     base = rss_mb()
+    reset_peak_rss()
     m = OnlineMap(dataclasses.replace(config, memory_budget_mb=b))
     learnt, samples, times = float("nan"), [], []
     t0 = time.perf_counter()
@@ -95,7 +84,7 @@ def child(kind: str, scans: int, budget: str) -> None:
             samples.append((i, rss_mb()))
     m.occupancy(first.points)  # a read: the deferred fits are paid
     seconds = time.perf_counter() - t0
-    end, peak = rss_mb(), peak_mb()
+    end, peak = rss_mb(), peak_rss_mb()
     half = [r for i, r in samples if i >= scans // 2]
     rise = max(half) - half[0] if half else float("nan")
     path = m.path  # the spill file of a budget
