@@ -135,6 +135,12 @@ class TrainingConfig:
     free_margin : float or None
         A free segment stops this many metres short of its hit so that it does not
         cancel the hit. ``None`` means one map resolution.
+    free_range : float or None
+        Metres from the sensor that a beam's evidence reaches, as OctoMap's
+        ``maxrange``: a no-return beam is free up to it, and a return farther away
+        becomes a free segment up to it without its hit. ``math.inf``: every beam
+        whole. ``None``: the default for the map's dimension
+        (:data:`DEFAULT_FREE_RANGE`).
     dedup : bool
         Keep one hit per voxel and one free segment per voxel of its end point.
         Without it, free evidence swamps the hits on real logs.
@@ -151,10 +157,18 @@ class TrainingConfig:
     quadrature_spacing: float = 0.5
     min_quadrature_nodes: int = 3
     max_quadrature_nodes: int = 33
+    free_range: float | None = None
 
     def __post_init__(self) -> None:
         if self.free_margin is not None:
             _positive("TrainingConfig", "free_margin", self.free_margin, allow_zero=True)
+        r = self.free_range
+        ok = isinstance(r, int | float) and not isinstance(r, bool)
+        if r is not None and (not ok or math.isnan(r) or r <= 0):
+            raise OctolgpError(
+                f"TrainingConfig.free_range must be None, math.inf or a number of metres > 0, "
+                f"got {r!r}"
+            )
         if not isinstance(self.dedup, bool):
             raise OctolgpError(f"TrainingConfig.dedup must be a bool, got {self.dedup!r}")
         _positive("TrainingConfig", "quadrature_spacing", self.quadrature_spacing, low=MIN_SPACING)
@@ -488,6 +502,15 @@ class LatticeConfig:
         box of 8: with 4, a wall's occupancy spread a cell into a doorway beside it; with
         5, a moved crate's last cell cleared a look late), 3 voxels in 3D, where a point
         costs more.
+    fill_voxels : int or None
+        How far the GP may fill space no beam saw: a voxel takes the GP's value only
+        when some voxel within this many voxels of it (along every axis: a cube of edge
+        ``2 k + 1``) was observed, free or occupied; farther out it holds no value and
+        reads unknown (0.5), like space outside every leaf. The gaps between rays
+        within ``k`` voxels of them are filled, rooms no beam entered and space beyond
+        the last observation are not. At most the tile's halo in voxels. ``-1``: every
+        voxel of a leaf takes the GP's value (files written before this setting).
+        ``None`` (default): :data:`DEFAULT_FILL_VOXELS`.
     """
 
     evidence_cap: int = 1
@@ -497,9 +520,12 @@ class LatticeConfig:
     clear_margin: float | None = None
     tile_voxels: int | None = None
     min_inducing_per_axis: int | None = None
+    fill_voxels: int | None = None
 
     def __post_init__(self) -> None:
         _integer("LatticeConfig", "evidence_cap", self.evidence_cap, 1, 255)
+        if self.fill_voxels is not None:
+            _integer("LatticeConfig", "fill_voxels", self.fill_voxels, -1, 1 << 15)
         _positive("LatticeConfig", "free_weight", self.free_weight, low=1e-6, high=1e6)
         if self.inducing_spacing is not None:
             _positive("LatticeConfig", "inducing_spacing", self.inducing_spacing, low=MIN_SPACING)
@@ -545,6 +571,13 @@ DEFAULT_CLEAR_SCANS = 5
 
 CLEAR_MARGIN_VOXELS = 5
 """The default ``clear_margin`` in voxels (see :class:`LatticeConfig`)."""
+
+DEFAULT_FILL_VOXELS = MappingProxyType({2: -1, 3: -1})
+"""The default ``fill_voxels`` per dimension, capped by the tile's halo (see
+:class:`LatticeConfig`)."""
+
+DEFAULT_FREE_RANGE = MappingProxyType({2: math.inf, 3: math.inf})
+"""The default ``free_range`` in metres per dimension (see :class:`TrainingConfig`)."""
 
 DEFAULT_LEARN_SCANS = MappingProxyType({2: 40, 3: 5})
 """The default ``learn_scans`` per dimension (see :class:`OnlineConfig`)."""
@@ -645,6 +678,12 @@ class MapConfig:
                 f"got {self.lattice.tile_voxels}"
             )
 
+        if not -1 <= self.fill_voxels <= self.tile_halo_voxels:
+            raise OctolgpError(
+                f"LatticeConfig.fill_voxels must be -1 or at most the tile's halo "
+                f"({self.tile_halo_voxels} voxels), got {self.fill_voxels}"
+            )
+
     def resolve(self) -> MapConfig:
         """Fill in every derived default (``n_jobs`` excepted); return the new config.
 
@@ -666,8 +705,11 @@ class MapConfig:
             clear_margin=self.clear_margin,
             tile_voxels=self.tile_voxels,
             min_inducing_per_axis=self.min_inducing_per_axis,
+            fill_voxels=self.fill_voxels,
         )
-        training = dataclasses.replace(self.training, free_margin=self.free_margin)
+        training = dataclasses.replace(
+            self.training, free_margin=self.free_margin, free_range=self.free_range
+        )
         return dataclasses.replace(self, online=online, lattice=lattice, training=training)
 
     # The values in force: a field's own value, or its default derived from the others.
@@ -709,6 +751,13 @@ class MapConfig:
         box = self.tile_voxels + 2 * self.tile_halo_voxels
         k = math.ceil(box / VOXELS_PER_INDUCING[self.dim] - 1e-9)
         return max(2, min(self.max_inducing_per_axis, k))
+
+    @property
+    def fill_voxels(self) -> int:
+        """Voxels from an observed one within which the GP fills (or its default)."""
+        if self.lattice.fill_voxels is not None:
+            return self.lattice.fill_voxels
+        return min(DEFAULT_FILL_VOXELS[self.dim], self.tile_halo_voxels)
 
     @property
     def tile_halo_voxels(self) -> int:
@@ -763,6 +812,13 @@ class MapConfig:
         """Metres a free segment stops short of its hit (``training.free_margin`` or one voxel)."""
         margin = self.training.free_margin
         return self.resolution if margin is None else margin
+
+    @property
+    def free_range(self) -> float:
+        """Metres a beam's evidence reaches (``training.free_range`` or its default)."""
+        if self.training.free_range is not None:
+            return float(self.training.free_range)
+        return DEFAULT_FREE_RANGE[self.dim]
 
     def to_dict(self) -> dict[str, Any]:
         """Return the config as nested plain dicts (``None`` values dropped, TOML-ready).

@@ -457,7 +457,7 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     dim, res, depth = config.dim, config.resolution, config.tree_depth
     origins, ends, max_range = stack_beams(scan_list)
     scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
-    beams = split_beams(origins, ends, max_range, config.free_margin)
+    beams = split_beams(origins, ends, max_range, config.free_margin, config.free_range)
     returns = ends[beams.is_hit]
     hit_keys = _voxel_keys(returns, res, depth)
     # returns at the precision a map file keeps them (a map equals the map read back)

@@ -9,6 +9,7 @@ Segment targets follow the *average* formulation of the integral kernel (see
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -126,7 +127,11 @@ class Beams:
 
 
 def split_beams(
-    origins: FloatArray, ends: FloatArray, max_range: FloatArray, free_margin: float
+    origins: FloatArray,
+    ends: FloatArray,
+    max_range: FloatArray,
+    free_margin: float,
+    free_range: float = math.inf,
 ) -> Beams:
     """Split beams into free segments and hits.
 
@@ -138,17 +143,24 @@ def split_beams(
         No-return range of each beam (``inf`` for none).
     free_margin : float
         Metres a free segment stops short of its hit.
+    free_range : float
+        Metres from the sensor a beam's evidence reaches (OctoMap's ``maxrange``): a
+        no-return is free up to it, a return beyond it is free up to it and loses its
+        hit. ``inf``: every beam whole.
     """
     vec = ends - origins
     length = np.linalg.norm(vec, axis=1)
     valid = length > 1e-9  # an endpoint on the sensor carries no direction
     # relative tolerance: a range reported at exactly max_range must not round into a hit
     no_return = valid & (length >= max_range * (1.0 - NO_RETURN_RTOL))
-    is_hit = valid & ~no_return
+    truncated = valid & ~no_return & (length > free_range)
+    is_hit = valid & ~no_return & ~truncated
     direction = np.zeros_like(vec)
     direction[valid] = vec[valid] / length[valid, None]
-    # Free segment: to max_range for no-returns, else stop free_margin short of the hit.
+    # Free segment: to max_range for no-returns, else stop free_margin short of the hit;
+    # no farther than free_range.
     free_len = np.where(no_return, np.minimum(length, max_range), length - free_margin)
+    free_len = np.where(truncated, free_range, np.minimum(free_len, free_range))
     has_seg = valid & (free_len > 1e-9)
     free_end = origins + direction * np.maximum(free_len, 0.0)[:, None]
     return Beams(length, is_hit, has_seg, free_end)
@@ -175,7 +187,7 @@ def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData
     """
     scan_list = check_scans(scans, config.dim)
     origins, ends, max_range = stack_beams(scan_list)
-    beams = split_beams(origins, ends, max_range, config.free_margin)
+    beams = split_beams(origins, ends, max_range, config.free_margin, config.free_range)
     is_hit, has_seg = beams.is_hit, beams.has_seg
     length = beams.length
     hit_index = np.full(length.shape, -1, dtype=np.int64)

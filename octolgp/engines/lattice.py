@@ -28,6 +28,7 @@ from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import ndimage
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.engines.base import (
@@ -804,8 +805,41 @@ def fit_lattice_leaves(
         voxels = layout.voxels[tile_of]
         for out, values in zip((mean, var, prob), tile_values, strict=True):
             out[leaf_of[:, None], voxels] = values
+    if config.fill_voxels >= 0:  # no value where no voxel near was observed
+        far = ~observed_near(stored, grid, config.fill_voxels)
+        for values in (mean, var, prob):
+            values[far] = np.nan
     fitted = fitted_leaves(leaves, mean, var, prob, config.prune)
     return [LeafFit(leaf, 0) for leaf in fitted]
+
+
+def observed_near(stored: NDArray[np.uint8], grid: LeafGrid, fill: int) -> NDArray[np.bool_]:
+    """Whether each leaf voxel has an observed voxel within ``fill`` voxels along every axis.
+
+    Parameters
+    ----------
+    stored : ndarray of uint8, shape (n, 2, H)
+        The leaves' stored counts over their halo boxes (x fastest).
+    grid : LeafGrid
+    fill : int
+        At most the leaf's halo in voxels, so that the halo box holds every voxel that
+        counts.
+
+    Returns
+    -------
+    ndarray of bool, shape (n, V)
+        Per leaf, in its voxel order (x fastest).
+    """
+    n, d, side, halo = stored.shape[0], grid.dim, grid.side, grid.halo_voxels
+    box = side + 2 * halo
+    seen = ((stored[:, 0] | stored[:, 1]) > 0).astype(np.uint8).reshape((n,) + (box,) * d)
+    if fill > 0:
+        seen = ndimage.maximum_filter(
+            seen, size=(1,) + (2 * fill + 1,) * d, mode="constant", cval=0
+        )
+    inner = seen[(slice(None),) + (slice(halo, halo + side),) * d]
+    out: NDArray[np.bool_] = inner.reshape(n, -1) > 0
+    return out
 
 
 class LatticeEngine:

@@ -56,7 +56,9 @@ class Bootstrap(Generic[M]):
         """
         for scan in self.scans:  # stops at the first scan with a return
             origins, ends, max_range = stack_beams([scan])
-            if split_beams(origins, ends, max_range, self.config.free_margin).is_hit.any():
+            if split_beams(
+                origins, ends, max_range, self.config.free_margin, self.config.free_range
+            ).is_hit.any():
                 return True
         return False
 

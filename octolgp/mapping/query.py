@@ -263,6 +263,8 @@ class MapReads:
     def voxels(self) -> tuple[FloatArray, FloatArray]:
         """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
 
+        Voxels a leaf holds no value for (too far from any observation:
+        ``LatticeConfig.fill_voxels``) are left out, as space outside every leaf is.
         Provisional while scans are buffered (see :attr:`provisional`).
 
         Returns
@@ -275,8 +277,11 @@ class MapReads:
             for _, leaf in m.store.items():  # one iteration per leaf
                 if leaf.prob.size == 0:
                     continue
-                cs.append(m.grid.voxel_centres(leaf.index))
-                ps.append(np.broadcast_to(leaf.prob, (cs[-1].shape[0],)).astype(np.float64))
+                centres = m.grid.voxel_centres(leaf.index)
+                prob = np.broadcast_to(leaf.prob, (centres.shape[0],)).astype(np.float64)
+                known = ~np.isnan(prob)
+                cs.append(centres[known])
+                ps.append(prob[known])
         if not cs:
             return np.zeros((0, self.config.dim)), np.zeros(0)
         return np.concatenate(cs), np.concatenate(ps)

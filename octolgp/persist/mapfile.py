@@ -42,6 +42,7 @@ journal); it never constructs or inspects a map object. The map holds a
 from __future__ import annotations
 
 import json
+import math
 import os
 import secrets
 import sqlite3
@@ -264,7 +265,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     ``lattice.min_inducing_per_axis`` one lattice point per 3 voxels of the halo box at
     least; the config keeps both, files from before ``learning.max_beams`` learnt on
     every beam, and files from before ``online.scan_precision`` kept scans as given and
-    every scan in the journal (``online.journal_scans``). The other derived fields
+    every scan in the journal (``online.journal_scans``), and files from before
+    ``training.free_range`` kept every beam whole. The other derived fields
     take the defaults they had when those files were written, which are today's.
 
     Raises
@@ -294,6 +296,9 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         online["scan_precision"] = None  # scans kept as given, as then
     if "journal_scans" not in online:
         online["journal_scans"] = None  # every scan journaled, as then
+    training = stored.setdefault("training", {})
+    if isinstance(training, dict) and "free_range" not in training:
+        training["free_range"] = math.inf  # every beam whole, as then
     learning = stored.setdefault("learning", {})
     if isinstance(learning, dict) and "max_beams" not in learning:
         learning["max_beams"] = None  # learnt on every beam, as then
