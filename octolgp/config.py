@@ -138,9 +138,15 @@ class TrainingConfig:
     free_range : float or None
         Metres from the sensor that a beam's evidence reaches, as OctoMap's
         ``maxrange``: a no-return beam is free up to it, and a return farther away
-        becomes a free segment up to it without its hit. ``math.inf``: every beam
-        whole. ``None``: the default for the map's dimension
-        (:data:`DEFAULT_FREE_RANGE`).
+        becomes a free segment up to it without its hit. ``math.inf`` (default):
+        every beam whole.
+    no_return_range : float or None
+        Metres a no-return beam (one reaching the scan's ``max_range``) is free up to,
+        at most ``free_range``: it says only that nothing returned, which glass, dark
+        surfaces and open doors do too, and its free segment to ``max_range`` spreads
+        free space far beyond anything seen (80 m rays on an indoor log). ``math.inf``:
+        to ``max_range``. ``None``: the default for the map's dimension
+        (:data:`DEFAULT_NO_RETURN_RANGE`).
     dedup : bool
         Keep one hit per voxel and one free segment per voxel of its end point.
         Without it, free evidence swamps the hits on real logs.
@@ -157,18 +163,19 @@ class TrainingConfig:
     quadrature_spacing: float = 0.5
     min_quadrature_nodes: int = 3
     max_quadrature_nodes: int = 33
-    free_range: float | None = None
+    free_range: float = math.inf
+    no_return_range: float | None = None
 
     def __post_init__(self) -> None:
         if self.free_margin is not None:
             _positive("TrainingConfig", "free_margin", self.free_margin, allow_zero=True)
-        r = self.free_range
-        ok = isinstance(r, int | float) and not isinstance(r, bool)
-        if r is not None and (not ok or math.isnan(r) or r <= 0):
-            raise OctolgpError(
-                f"TrainingConfig.free_range must be None, math.inf or a number of metres > 0, "
-                f"got {r!r}"
-            )
+        for name in ("free_range", "no_return_range"):
+            r = getattr(self, name)
+            ok = isinstance(r, int | float) and not isinstance(r, bool)
+            if (r is not None or name == "free_range") and (not ok or math.isnan(r) or r <= 0):
+                raise OctolgpError(
+                    f"TrainingConfig.{name} must be math.inf or a number of metres > 0, got {r!r}"
+                )
         if not isinstance(self.dedup, bool):
             raise OctolgpError(f"TrainingConfig.dedup must be a bool, got {self.dedup!r}")
         _positive("TrainingConfig", "quadrature_spacing", self.quadrature_spacing, low=MIN_SPACING)
@@ -576,8 +583,8 @@ DEFAULT_FILL_VOXELS = MappingProxyType({2: -1, 3: -1})
 """The default ``fill_voxels`` per dimension, capped by the tile's halo (see
 :class:`LatticeConfig`)."""
 
-DEFAULT_FREE_RANGE = MappingProxyType({2: math.inf, 3: math.inf})
-"""The default ``free_range`` in metres per dimension (see :class:`TrainingConfig`)."""
+DEFAULT_NO_RETURN_RANGE = MappingProxyType({2: math.inf, 3: math.inf})
+"""The default ``no_return_range`` in metres per dimension (see :class:`TrainingConfig`)."""
 
 DEFAULT_LEARN_SCANS = MappingProxyType({2: 40, 3: 5})
 """The default ``learn_scans`` per dimension (see :class:`OnlineConfig`)."""
@@ -708,7 +715,7 @@ class MapConfig:
             fill_voxels=self.fill_voxels,
         )
         training = dataclasses.replace(
-            self.training, free_margin=self.free_margin, free_range=self.free_range
+            self.training, free_margin=self.free_margin, no_return_range=self.no_return_range
         )
         return dataclasses.replace(self, online=online, lattice=lattice, training=training)
 
@@ -815,10 +822,14 @@ class MapConfig:
 
     @property
     def free_range(self) -> float:
-        """Metres a beam's evidence reaches (``training.free_range`` or its default)."""
-        if self.training.free_range is not None:
-            return float(self.training.free_range)
-        return DEFAULT_FREE_RANGE[self.dim]
+        """Metres a beam's evidence reaches (``training.free_range``)."""
+        return float(self.training.free_range)
+
+    @property
+    def no_return_range(self) -> float:
+        """Metres a no-return beam is free up to (``training.no_return_range`` or default)."""
+        r = self.training.no_return_range
+        return min(DEFAULT_NO_RETURN_RANGE[self.dim] if r is None else float(r), self.free_range)
 
     def to_dict(self) -> dict[str, Any]:
         """Return the config as nested plain dicts (``None`` values dropped, TOML-ready).

@@ -41,7 +41,7 @@ from octolgp.config import MapConfig
 from octolgp.geometry import ray_kernel
 from octolgp.geometry.keys import KEY_BITS, pack_keys, return_steps, step_points, unpack_keys
 from octolgp.scan import Scan
-from octolgp.training import IntArray, check_scans, split_beams, stack_beams
+from octolgp.training import IntArray, check_scans, config_beams, stack_beams
 
 BLOCK_VOXELS = 1 << 18
 """Voxels of free segments (their origins' and one per border crossing) handled at once
@@ -457,7 +457,7 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     dim, res, depth = config.dim, config.resolution, config.tree_depth
     origins, ends, max_range = stack_beams(scan_list)
     scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
-    beams = split_beams(origins, ends, max_range, config.free_margin, config.free_range)
+    beams = config_beams(origins, ends, max_range, config)
     returns = ends[beams.is_hit]
     hit_keys = _voxel_keys(returns, res, depth)
     # returns at the precision a map file keeps them (a map equals the map read back)

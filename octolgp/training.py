@@ -132,6 +132,7 @@ def split_beams(
     max_range: FloatArray,
     free_margin: float,
     free_range: float = math.inf,
+    no_return_range: float = math.inf,
 ) -> Beams:
     """Split beams into free segments and hits.
 
@@ -147,6 +148,8 @@ def split_beams(
         Metres from the sensor a beam's evidence reaches (OctoMap's ``maxrange``): a
         no-return is free up to it, a return beyond it is free up to it and loses its
         hit. ``inf``: every beam whole.
+    no_return_range : float
+        Metres a no-return beam is free up to (at most ``free_range``).
     """
     vec = ends - origins
     length = np.linalg.norm(vec, axis=1)
@@ -159,11 +162,21 @@ def split_beams(
     direction[valid] = vec[valid] / length[valid, None]
     # Free segment: to max_range for no-returns, else stop free_margin short of the hit;
     # no farther than free_range.
-    free_len = np.where(no_return, np.minimum(length, max_range), length - free_margin)
+    reach = np.minimum(np.minimum(length, max_range), no_return_range)
+    free_len = np.where(no_return, reach, length - free_margin)
     free_len = np.where(truncated, free_range, np.minimum(free_len, free_range))
     has_seg = valid & (free_len > 1e-9)
     free_end = origins + direction * np.maximum(free_len, 0.0)[:, None]
     return Beams(length, is_hit, has_seg, free_end)
+
+
+def config_beams(
+    origins: FloatArray, ends: FloatArray, max_range: FloatArray, config: MapConfig
+) -> Beams:
+    """:func:`split_beams` with the sensor model of ``config`` (its margin and ranges)."""
+    return split_beams(
+        origins, ends, max_range, config.free_margin, config.free_range, config.no_return_range
+    )
 
 
 def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData:
@@ -187,7 +200,7 @@ def make_training_data(scans: Iterable[Scan], config: MapConfig) -> TrainingData
     """
     scan_list = check_scans(scans, config.dim)
     origins, ends, max_range = stack_beams(scan_list)
-    beams = split_beams(origins, ends, max_range, config.free_margin, config.free_range)
+    beams = config_beams(origins, ends, max_range, config)
     is_hit, has_seg = beams.is_hit, beams.has_seg
     length = beams.length
     hit_index = np.full(length.shape, -1, dtype=np.int64)

@@ -37,6 +37,26 @@ def add_config_option(p: argparse.ArgumentParser) -> None:
         help="map configuration (sections as MapConfig's: [online], [training], ...; see "
         "octolgp dump-config); explicit flags override it",
     )
+    p.add_argument(
+        "--free-range",
+        type=_free_range,
+        default=None,
+        metavar="M",
+        help="metres from the sensor a beam's evidence reaches (training.free_range, as "
+        "OctoMap's maxrange: no-returns free up to it, returns beyond it without their "
+        "hit; default inf: whole beams)",
+    )
+
+
+def _free_range(text: str) -> float:
+    """``--free-range``: metres > 0, or ``inf``."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"must be a number of metres > 0 or inf, got {text}")
+    return value
 
 
 def resolve_config(
@@ -48,7 +68,8 @@ def resolve_config(
     ----------
     args : argparse.Namespace
         Read: ``config`` (a TOML file, else the defaults), then the flags given (not
-        ``None``): ``resolution`` (metres), ``learn_scans`` (``online.learn_scans``) and
+        ``None``): ``resolution`` (metres), ``free_range`` (metres,
+        ``training.free_range``), ``learn_scans`` (``online.learn_scans``) and
         ``memory_budget`` (MB, ``memory_budget_mb``); absent attributes are skipped.
     dim : int, optional
         The data's dimension, 2 or 3; it replaces the file's ``dim``.
@@ -70,6 +91,8 @@ def resolve_config(
         changes["resolution"] = args.resolution
     if getattr(args, "memory_budget", None) is not None:
         changes["memory_budget_mb"] = args.memory_budget
+    if getattr(args, "free_range", None) is not None:
+        changes["training"] = dataclasses.replace(base.training, free_range=args.free_range)
     online: dict[str, Any] = {}
     if getattr(args, "learn_scans", None) is not None:
         online["learn_scans"] = args.learn_scans

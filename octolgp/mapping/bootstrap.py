@@ -18,7 +18,7 @@ from typing import Generic, TypeVar
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.gp.learning import learn_hyperparameters
 from octolgp.scan import Scan
-from octolgp.training import split_beams, stack_beams
+from octolgp.training import config_beams, stack_beams
 
 M = TypeVar("M")
 
@@ -56,9 +56,7 @@ class Bootstrap(Generic[M]):
         """
         for scan in self.scans:  # stops at the first scan with a return
             origins, ends, max_range = stack_beams([scan])
-            if split_beams(
-                origins, ends, max_range, self.config.free_margin, self.config.free_range
-            ).is_hit.any():
+            if config_beams(origins, ends, max_range, self.config).is_hit.any():
                 return True
         return False
 

@@ -266,7 +266,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     least; the config keeps both, files from before ``learning.max_beams`` learnt on
     every beam, and files from before ``online.scan_precision`` kept scans as given and
     every scan in the journal (``online.journal_scans``), and files from before
-    ``training.free_range`` kept every beam whole. The other derived fields
+    ``training.no_return_range`` kept every beam whole and, before
+    ``lattice.fill_voxels``, filled every voxel of a leaf. The other derived fields
     take the defaults they had when those files were written, which are today's.
 
     Raises
@@ -296,9 +297,11 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         online["scan_precision"] = None  # scans kept as given, as then
     if "journal_scans" not in online:
         online["journal_scans"] = None  # every scan journaled, as then
+    if isinstance(lattice, dict) and "fill_voxels" not in lattice:
+        lattice["fill_voxels"] = -1  # every voxel of a leaf filled, as then
     training = stored.setdefault("training", {})
-    if isinstance(training, dict) and "free_range" not in training:
-        training["free_range"] = math.inf  # every beam whole, as then
+    if isinstance(training, dict) and "no_return_range" not in training:
+        training["no_return_range"] = math.inf  # every beam whole, as then
     learning = stored.setdefault("learning", {})
     if isinstance(learning, dict) and "max_beams" not in learning:
         learning["max_beams"] = None  # learnt on every beam, as then
