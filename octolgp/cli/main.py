@@ -20,7 +20,7 @@ from typing import NoReturn
 from octolgp import __version__
 from octolgp.cli.build import cmd_bench, cmd_build, cmd_eval, cmd_simulate
 from octolgp.cli.configs import add_config_option, add_dump_config
-from octolgp.cli.maps import cmd_correct, cmd_export, cmd_query
+from octolgp.cli.maps import cmd_correct, cmd_export, cmd_info, cmd_query
 from octolgp.cli.online import cmd_replay, cmd_run
 from octolgp.errors import OctolgpError
 
@@ -181,6 +181,11 @@ def make_parser() -> argparse.ArgumentParser:
     )
     _mapping_options(replay)
     replay.set_defaults(func=cmd_replay)
+
+    info = sub.add_parser("info", help="what a map file holds (read only)")
+    info.add_argument("map", help="map file written by run, build or replay")
+    info.add_argument("--json", action="store_true", help="one JSON object instead of lines")
+    info.set_defaults(func=cmd_info)
 
     query = sub.add_parser("query", help="P(occupied) at query points of a map file")
     query.add_argument("map", help="map file written by run")

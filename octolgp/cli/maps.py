@@ -1,8 +1,9 @@
-"""The commands on a map file: ``query`` (P(occupied) at points), ``export``, ``correct``."""
+"""The commands on a map file: ``info``, ``query`` (P(occupied) at points), ``export``, ``correct``."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -12,7 +13,70 @@ from octolgp.errors import OctolgpError
 if TYPE_CHECKING:
     import numpy as np
 
-__all__ = ["cmd_correct", "cmd_export", "cmd_query"]
+__all__ = ["cmd_correct", "cmd_export", "cmd_info", "cmd_query", "map_info"]
+
+
+def map_info(path: str | Path) -> dict[str, object]:
+    """What a map file holds, read without fitting a leaf or changing the file.
+
+    Returns
+    -------
+    dict
+        ``dim``, ``resolution`` (m), ``engine``, ``scans``, ``journal`` (the scans a
+        correction can still reach, ``first``-``last``), ``leaves``, ``extent`` (the
+        box of the leaves, metres, world frame: ``[min, max]`` per axis; ``None`` when
+        empty), ``hyperparameters`` (``None`` while learning), the sensor model
+        (``free_range``, ``no_return_range``, ``fill_voxels``) and ``file_bytes`` (the file
+        with its write-ahead log).
+    """
+    import numpy as np
+
+    from octolgp.geometry.keys import unpack_keys
+    from octolgp.mapping.online import OnlineMap
+
+    p = Path(path)
+    with OnlineMap.open(p, read_only=True) as m:
+        c, keys = m.config, np.fromiter(m.store, dtype=np.int64)
+        extent = None
+        if keys.size:
+            lo, hi = m.grid.box(unpack_keys(keys, c.dim))
+            extent = [[float(a), float(b)] for a, b in zip(lo.min(0), hi.max(0), strict=True)]
+        hp = m.hyperparameters
+        info: dict[str, object] = {
+            "dim": c.dim,
+            "resolution": c.resolution,
+            "engine": c.online.engine,
+            "scans": m.n_scans,
+            "journal": [m.journal_start + 1, m.n_scans] if m.n_scans > m.journal_start else None,
+            "leaves": int(keys.size),
+            "extent": extent,
+            "hyperparameters": None if hp is None else dataclasses.asdict(hp),
+            "free_range": c.free_range,
+            "no_return_range": c.no_return_range,
+            "fill_voxels": c.fill_voxels,
+        }
+    wal = p.with_name(p.name + "-wal")
+    info["file_bytes"] = p.stat().st_size + (wal.stat().st_size if wal.exists() else 0)
+    return info
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    """``octolgp info``: what a map file holds, one ``key: value`` line each (or JSON)."""
+    import json
+
+    info = map_info(args.map)
+    if args.json:
+        print(json.dumps(info))
+        return 0
+    for key, value in info.items():  # a dozen lines
+        if key == "hyperparameters" and isinstance(value, dict):
+            value = ", ".join(f"{k}={v:.4g}" for k, v in value.items())
+        elif key == "extent" and isinstance(value, list):
+            value = " x ".join(f"[{lo:.1f}, {hi:.1f}]" for lo, hi in value) + " m"
+        elif key == "journal" and isinstance(value, list):
+            value = f"scans {value[0]}-{value[1]} (what a correction can reach)"
+        print(f"{key}: {value}")
+    return 0
 
 
 def cmd_query(args: argparse.Namespace) -> int:
