@@ -14,6 +14,7 @@ resolves the map configuration (``--config``, ``dump-config``).
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from typing import NoReturn
 
@@ -157,6 +158,12 @@ def make_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"octolgp {__version__}")
     parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    parser.add_argument(
+        "--log-level",
+        choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+        default="WARNING",
+        help="messages of the octolgp logger shown on stderr (default WARNING)",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
 
     sim = sub.add_parser("simulate", help="write a simulated data set with ground truth")
@@ -169,6 +176,21 @@ def make_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="map a scan log online, scan by scan")
     _scan_log_options(run)
     _mapping_options(run)
+    run.add_argument(
+        "--downsample",
+        type=_positive_float,
+        default=None,
+        metavar="VOXEL",
+        help="keep one beam per voxel of this edge, metres (Scan.downsample; for 3D lidar)",
+    )
+    run.add_argument(
+        "--max-range",
+        type=_positive_float,
+        default=None,
+        metavar="M",
+        help="no-return range, metres: beams at least this long are no-returns (below the "
+        "log's own, where it has one)",
+    )
     run.set_defaults(func=cmd_run)
 
     replay = sub.add_parser("replay", help="rebuild a map from a Rerun recording")
@@ -382,6 +404,8 @@ def main(argv: list[str] | None = None) -> int:
     """
     parser = make_parser()
     args = parser.parse_args(argv)
+    logging.basicConfig(format="octolgp: %(levelname)s: %(message)s")
+    logging.getLogger("octolgp").setLevel(args.log_level)
     try:
         return int(args.func(args))
     except Exception as exc:

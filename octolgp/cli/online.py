@@ -11,12 +11,17 @@ until Ctrl-C). Heavy modules are imported inside the commands.
 from __future__ import annotations
 
 import argparse
+import sys
+import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from octolgp.cli.scans import first_and_rest, refused_scan
+from octolgp.cli.scans import first_and_rest, refused_scan, scan_total
 from octolgp.errors import OctolgpError
+
+if TYPE_CHECKING:
+    from octolgp.scan import Scan
 
 __all__ = ["cmd_replay", "cmd_run"]
 
@@ -146,28 +151,57 @@ def _check_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iter
     return scans
 
 
-def _insert_all(m: Any, scans: Iterator[Any], quiet: bool, source: str) -> int:
-    """Insert the scans one by one (a progress bar in scans/s), then flush the bootstrap.
+PROGRESS_SECONDS = 10.0
+"""Seconds between progress lines when stderr is not a terminal (a pipe, a CI log)."""
 
-    A refused scan is named by its number in the log and ``source`` (``SCANS 'x.log'``).
-    Returns the kernel matrices repaired by jitter.
+
+def progress_line(done: int, total: int | None, seconds: float, leaves: int) -> str:
+    """One progress line: scans done (of ``total``), rate, ETA where the total is known."""
+    rate = done / seconds if seconds > 0 else float("nan")
+    of = f"{done}" if total is None else f"{done}/{total} ({100 * done / max(total, 1):.0f}%)"
+    eta = ""
+    if total is not None and rate > 0:
+        left = max(total - done, 0) / rate
+        eta = f", ETA {int(left // 60)}:{int(left % 60):02d}"
+    return f"octolgp: scan {of}, {rate:.1f} scans/s{eta}, {leaves} leaves"
+
+
+def _insert_all(
+    m: Any, scans: Iterator[Any], quiet: bool, source: str, total: int | None = None
+) -> int:
+    """Insert the scans one by one, then flush the bootstrap.
+
+    Progress: a bar on a terminal (scans/s, and with ``total`` the share and ETA), else a
+    line every :data:`PROGRESS_SECONDS`; ``quiet``: none. A refused scan is named by its
+    number in the log and ``source`` (``SCANS 'x.log'``). Returns the kernel matrices
+    repaired by jitter.
     """
     from tqdm import tqdm
 
-    bar = tqdm(scans, unit="scan", disable=quiet or None, dynamic_ncols=True)
-    repaired = 0
-    for scan in bar:  # one iteration per scan
+    terminal = sys.stderr.isatty()
+    bar = tqdm(scans, unit="scan", total=total, disable=quiet or not terminal, dynamic_ncols=True)
+    repaired, t0, said = 0, time.monotonic(), time.monotonic()
+    for i, scan in enumerate(bar, start=1):  # one iteration per scan
         try:
             update = m.insert_scan(scan)
         except OctolgpError as exc:
             raise refused_scan(source, m.n_scans + 1, exc) from None
         repaired += update.repaired
         bar.set_postfix(leaves=update.n_leaves, refit=update.refit_leaves, refresh=False)
+        if not quiet and not terminal and time.monotonic() - said >= PROGRESS_SECONDS:
+            said = time.monotonic()
+            print(progress_line(i, total, said - t0, update.n_leaves), file=sys.stderr)
     last = m.flush()
     return repaired + (0 if last is None else last.repaired)
 
 
-def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace, source: str) -> int:
+def _map_scans(
+    scans: Iterator[Any],
+    first: Any,
+    args: argparse.Namespace,
+    source: str,
+    total: int | None = None,
+) -> int:
     """Insert scans one by one into a new map file (progress bar in scans/s).
 
     ``source`` names the log in messages (``SCANS 'intel.log'``).
@@ -217,7 +251,7 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace, sourc
         m = OnlineMap(config, path=out, sink=sink)
     try:
         with m:
-            repaired = _insert_all(m, scans, args.quiet, source)
+            repaired = _insert_all(m, scans, args.quiet, source, None if resume else total)
             n_leaves, n_scans = len(m.store), m.n_scans
     except BaseException:
         if rec is not None:
@@ -243,7 +277,25 @@ def _map_scans(scans: Iterator[Any], first: Any, args: argparse.Namespace, sourc
 def cmd_run(args: argparse.Namespace) -> int:
     """``octolgp run``: map a scan log online, scan by scan."""
     first, scans = first_and_rest(args.scans, args.format, args.skip_bad)
-    return _map_scans(scans, first, args, f"SCANS {args.scans!r}")
+    if args.max_range is not None or args.downsample is not None:
+        scans = (prepared(s, args.max_range, args.downsample) for s in scans)
+    total = None if args.quiet else scan_total(args.scans, args.format, args.limit)
+    return _map_scans(scans, first, args, f"SCANS {args.scans!r}", total)
+
+
+def prepared(scan: Scan, max_range: float | None, downsample: float | None) -> Scan:
+    """A scan as ``run --max-range --downsample`` inserts it.
+
+    ``max_range`` lowers the scan's no-return range (beams at least that long are
+    no-returns, their points kept); ``downsample`` keeps one beam per voxel of that edge
+    (:meth:`~octolgp.Scan.downsample`), after the no-return range is set.
+    """
+    from octolgp.scan import Scan
+
+    if max_range is not None:
+        reach = max_range if scan.max_range is None else min(scan.max_range, max_range)
+        scan = Scan(origin=scan.origin, points=scan.points, max_range=reach, stamp=scan.stamp)
+    return scan if downsample is None else scan.downsample(downsample)
 
 
 def cmd_replay(args: argparse.Namespace) -> int:

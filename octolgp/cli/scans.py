@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 from octolgp.errors import OctolgpError
 
-__all__ = ["check_scans", "first_and_rest", "refused_scan"]
+__all__ = ["check_scans", "first_and_rest", "refused_scan", "scan_total"]
 
 
 def first_and_rest(path: str, fmt: str | None, skip_bad: bool = False) -> tuple[Any, Iterator[Any]]:
@@ -35,6 +36,20 @@ def first_and_rest(path: str, fmt: str | None, skip_bad: bool = False) -> tuple[
     if first is None:
         raise OctolgpError(f"SCANS {path!r} holds no scans")
     return first, itertools.chain([first], it, report())
+
+
+def scan_total(path: str, fmt: str | None, limit: int | None) -> int | None:
+    """The scans a ``run`` will insert, where a quick count tells (CARMEN), for progress."""
+    from octolgp.io import detect_format
+    from octolgp.io.carmen import count_laser_lines
+
+    try:
+        total = count_laser_lines(path) if (fmt or detect_format(Path(path))) == "carmen" else None
+    except (OSError, OctolgpError, EOFError):
+        total = None  # the reader reports what is wrong with the file
+    if total is None:
+        return limit
+    return total if limit is None else min(total, limit)
 
 
 def refused_scan(source: str, number: int, exc: OctolgpError) -> OctolgpError:

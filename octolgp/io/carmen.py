@@ -152,6 +152,16 @@ def _parse_robotlaser(tokens: list[str]) -> _Record:
 _PARSERS = MappingProxyType({"FLASER": _parse_flaser, "ROBOTLASER1": _parse_robotlaser})
 
 
+def count_laser_lines(path: str | Path) -> int:
+    """Laser lines (``FLASER``, ``ROBOTLASER1``) of a CARMEN log: its scans, read or not.
+
+    A quick pass over the text (for a progress total); the reader yields one scan per
+    such line, but for malformed ones it skips or refuses.
+    """
+    with _open_text(Path(path)) as fh:
+        return sum(1 for line in fh if line.split(maxsplit=1)[:1] in (["FLASER"], ["ROBOTLASER1"]))
+
+
 def _open_text(path: Path) -> IO[str]:
     """Open a log as text, gunzipping when it starts with the gzip magic bytes."""
     with open(path, "rb") as fh:
