@@ -685,18 +685,24 @@ class MapConfig:
                 f"got {self.lattice.tile_voxels}"
             )
 
-        if not -1 <= self.fill_voxels <= self.tile_halo_voxels:
-            raise OctolgpError(
-                f"LatticeConfig.fill_voxels must be -1 or at most the tile's halo "
-                f"({self.tile_halo_voxels} voxels), got {self.fill_voxels}"
-            )
-
     def resolve(self) -> MapConfig:
         """Fill in every derived default (``n_jobs`` excepted); return the new config.
 
         ``n_jobs`` stays as given: threads are a property of the machine running the
         map, not of the map. Resolving a resolved config returns an equal one.
+
+        Raises
+        ------
+        OctolgpError
+            On settings that do not fit together (``lattice.fill_voxels`` beyond the
+            tile's halo), checked here because a config file may give the dimension
+            they depend on later.
         """
+        if not -1 <= self.fill_voxels <= self.tile_halo_voxels:
+            raise OctolgpError(
+                f"LatticeConfig.fill_voxels must be -1 or at most the tile's halo "
+                f"({self.tile_halo_voxels} voxels), got {self.fill_voxels}"
+            )
         online = dataclasses.replace(
             self.online,
             leaf_depth=self.leaf_depth,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -80,8 +81,12 @@ def test_a_room_no_beam_entered_reads_unknown() -> None:
 
 
 def test_fill_voxels_is_checked_against_the_tile_halo() -> None:
+    too_far = MapConfig(dim=3, resolution=0.2, lattice=LatticeConfig(fill_voxels=2))
     with pytest.raises(OctolgpError, match=r"LatticeConfig\.fill_voxels"):
-        MapConfig(dim=3, resolution=0.2, lattice=LatticeConfig(fill_voxels=2))
+        too_far.resolve()  # a config file may set the dimension later: checked at use
+    with pytest.raises(OctolgpError, match=r"LatticeConfig\.fill_voxels"):
+        OnlineMap(too_far)
+    assert dataclasses.replace(too_far, dim=2).resolve().fill_voxels == 2
     with pytest.raises(OctolgpError, match=r"LatticeConfig\.fill_voxels"):
         LatticeConfig(fill_voxels=-2)
     assert MapConfig(dim=3, lattice=LatticeConfig(fill_voxels=1)).fill_voxels == 1
