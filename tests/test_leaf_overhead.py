@@ -250,6 +250,7 @@ class ReferenceStore(LeafStore):
             if key in self._dirty:
                 continue
             self._nbytes -= self._leaves.pop(key).nbytes
+            self._pending.discard(key)  # the file gives it back to be fitted as it is read
             evicted += 1
         self.evictions += evicted
         return evicted
