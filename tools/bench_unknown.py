@@ -1,11 +1,11 @@
-"""What a map says about space it never saw: free range and honest unknown, on real logs.
+"""What a map says about space it never saw: the no-return range and honest unknown, on real logs.
 
 Figures: BENCHMARKS.md, "Honest unknown and the free range".
 
-Per log (Intel, shipped; FR079 from ``../shared/data`` when present) and setting (free
-range ``TrainingConfig.free_range``, fill ``LatticeConfig.fill_voxels``; the rest the
-default config, hyperparameters learnt as a user gets them), the whole log is mapped and
-the table gives:
+Per log (Intel, shipped; FR079 from ``../shared/data`` when present) and setting (how far
+a no-return beam is free, ``TrainingConfig.no_return_range``; how far the GP fills,
+``LatticeConfig.fill_voxels``; the rest the default config, hyperparameters learnt as a
+user gets them), the whole log is mapped and the table gives:
 
 - the map's extent (the box of its voxels, as ``octolgp export`` draws it) and its cells
   free / unknown / occupied at nav2's thresholds (P <= 0.25, P >= 0.65; a cell holding no
@@ -43,7 +43,7 @@ LOGS = {
     "intel": ROOT / "data" / "intel_lab" / "intel-corrected.log.gz",
     "fr079": ROOT.parent / "shared" / "data" / "fr079" / "freiburg-079-corrected.log.gz",
 }
-SETTINGS = [(math.inf, -1), (20.0, -1), (math.inf, 2), (20.0, 2), (20.0, 1)]
+SETTINGS = [(math.inf, -1), (10.0, -1), (math.inf, 2), (10.0, 2), (10.0, 1)]
 
 
 def cells(points: np.ndarray, res: float) -> np.ndarray:
@@ -51,12 +51,12 @@ def cells(points: np.ndarray, res: float) -> np.ndarray:
     return np.floor(points / res).astype(np.int64)
 
 
-def measure(scans: list[Scan], free_range: float, fill: int, res: float) -> dict[str, float]:
+def measure(scans: list[Scan], no_return: float, fill: int, res: float) -> dict[str, float]:
     """Map the scans with one setting; the figures of the module's docstring."""
     config = MapConfig(
         dim=2,
         resolution=res,
-        training=TrainingConfig(free_range=free_range),
+        training=TrainingConfig(no_return_range=no_return),
         lattice=LatticeConfig(fill_voxels=fill),
     )
     t = time.perf_counter()
@@ -73,7 +73,7 @@ def measure(scans: list[Scan], free_range: float, fill: int, res: float) -> dict
     occupied = np.nansum(raster >= 0.65)
     total = raster.size
     # the building: the box of every return; its cells no beam saw (every beam whole)
-    whole = dataclasses.replace(config, training=TrainingConfig(free_range=math.inf))
+    whole = dataclasses.replace(config, training=TrainingConfig(no_return_range=math.inf))
     obs = observe(scans, whole)
     seen = {tuple(k) for k in cells(key_to_coord(obs.keys, res, config.tree_depth), res).tolist()}
     returns = np.concatenate(
@@ -121,7 +121,7 @@ def main() -> int:
     ap.add_argument("--limit", type=int, default=None, help="first N scans of each log")
     args = ap.parse_args()
     print(
-        "| log | free range m | fill voxels | extent m | cells | free | unknown | occupied | "
+        "| log | no-return range m | fill voxels | extent m | cells | free | unknown | occupied | "
         "unseen cells in the building | of them unknown | of them free | deep unseen | of them "
         "unknown | of them free | free cells outside the building | s |"
     )
@@ -132,10 +132,10 @@ def main() -> int:
             print(f"{name} skipped: {path} is absent (../shared/data is not part of a clone)")
             continue
         scans = list(load_scans(path))[: args.limit]
-        for free_range, fill in SETTINGS:
-            r = measure(scans, free_range, fill, 0.1)
+        for no_return, fill in SETTINGS:
+            r = measure(scans, no_return, fill, 0.1)
             print(
-                f"| {name} | {free_range:g} | {fill} | {r['extent_m']} | {r['cells']:,} | "
+                f"| {name} | {no_return:g} | {fill} | {r['extent_m']} | {r['cells']:,} | "
                 f"{r['free']:,} | {r['unknown']:,} | {r['occupied']:,} | {r['unseen']:,} | "
                 f"{r['unseen_unknown']:.3f} | {r['unseen_free']:.3f} | {r['deep']:,} | "
                 f"{r['deep_unknown']:.3f} | {r['deep_free']:.3f} | {r['free_outside']:,} | "
