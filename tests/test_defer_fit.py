@@ -127,7 +127,8 @@ def test_maps_that_show_every_step_fit_at_once(room: list[Scan]) -> None:
         assert not m.store.pending
         m.close()
     assert sink.values
-    assert all(v.size and np.isfinite(v).all() for v in sink.values)
+    # finite values, NaN where a voxel is too far from every observation to hold one
+    assert all(v.size and np.isfinite(v).any() and not np.isinf(v).any() for v in sink.values)
 
 
 def test_maps_with_a_file_defer_and_read_as_fitted_at_once(

@@ -137,5 +137,6 @@ def test_the_free_range_flag_reaches_the_map(tmp_path: Path) -> None:
             assert m.config.free_range == float(free_range)
             centres, _ = m.voxels()
         reach[free_range] = np.linalg.norm(centres[:, None] - poses[None], axis=2).min(1).max()
-    assert reach["7.5"] < 7.5 + 3.0  # nothing beyond the range but a leaf's extent
-    assert reach["inf"] > 20.0  # the log's no-returns reach 81.8 m
+    # nothing beyond the range but what the GP fills (2 voxels); returns to ~14 m without
+    assert reach["7.5"] < 7.5 + 0.5
+    assert reach["inf"] > 12.0

@@ -8,13 +8,15 @@ face-connected path of voxels that each touch the segment.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from octolgp import MapConfig, Scan, observations
-from octolgp.config import OnlineConfig
+from octolgp.config import OnlineConfig, TrainingConfig
 from octolgp.geometry.keys import KEY_BITS, pack_keys
 from octolgp.geometry.raycast import traverse_voxels
 from octolgp.observations import _free_codes, observe
@@ -105,7 +107,12 @@ def test_observe_sees_free_every_voxel_a_segment_passes_through(dim: int, clear_
     segments' traversal or end voxel holds it, without a return of the scan there."""
     res = RESOLUTION[dim]
     rng = np.random.default_rng(10 + dim)
-    config = MapConfig(dim=dim, resolution=res, online=OnlineConfig(clear_scans=clear_scans))
+    config = MapConfig(
+        dim=dim,
+        resolution=res,
+        online=OnlineConfig(clear_scans=clear_scans),
+        training=TrainingConfig(no_return_range=math.inf),  # every no-return whole
+    )
     scans = []
     for _ in range(4):
         origin, ends = _rays(rng, 150, dim)

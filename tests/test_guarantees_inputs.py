@@ -11,6 +11,7 @@ from __future__ import annotations
 import array
 import gzip
 import logging
+import math
 import re
 import struct
 import subprocess
@@ -25,11 +26,13 @@ import rerun as rr
 
 from octolgp import (
     Hyperparameters,
+    LatticeConfig,
     MapConfig,
     OctolgpError,
     OnlineConfig,
     OnlineMap,
     Scan,
+    TrainingConfig,
     load_scans,
 )
 from octolgp.io import limits, npz, pcd
@@ -177,7 +180,15 @@ def sink_recording(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     """SINK_SCANS mapped online and streamed to a file by the sink (one flush per scan)."""
     path = tmp_path_factory.mktemp("sink") / "full.rrd"
     rec, _ = open_recording(save=path)
-    config = MapConfig(dim=2, resolution=0.2, hyperparameters=HP)
+    # whole no-returns and every voxel filled: a recording whose chunks put the first
+    # scan's display copy before its exact copy, the case the cuts below need
+    config = MapConfig(
+        dim=2,
+        resolution=0.2,
+        hyperparameters=HP,
+        training=TrainingConfig(no_return_range=math.inf),
+        lattice=LatticeConfig(fill_voxels=-1),
+    )
     with OnlineMap(config, sink=RerunSink(rec)) as m:
         for scan in SINK_SCANS:
             m.insert_scan(scan)

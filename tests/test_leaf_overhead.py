@@ -180,6 +180,15 @@ def reference_fit(
         var[inner] = tile_var[j * len(tiles) + q].reshape((t,) * d)
     mean, var = mean.reshape(len(leaves), -1), var.reshape(len(leaves), -1)
     prob = latent_occupancy(mean, var, hp)
+    k = config.fill_voxels
+    if k >= 0:  # no value where no voxel within k was observed, voxel by voxel
+        for j, leaf in enumerate(leaves):
+            seen = (lattice_evidence(leaf).counts.sum(axis=0) > 0).reshape((box,) * d)
+            for v in itertools.product(range(side), repeat=d):  # v in [z, y, x] order
+                window = tuple(slice(c + halo - k, c + halo + k + 1) for c in v)
+                if not seen[window].any():
+                    flat = sum(c * side**a for a, c in enumerate(reversed(v)))
+                    mean[j, flat] = var[j, flat] = prob[j, flat] = np.nan
     prune = config.prune
     return [
         LeafFit(with_values(leaf, mean[j], var[j], prob[j], prune), 0)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 import sqlite3
 import struct
 import subprocess
@@ -14,7 +15,14 @@ import numpy as np
 import pytest
 from test_online import assert_same_map
 
-from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
+from octolgp import (
+    Hyperparameters,
+    LatticeConfig,
+    MapConfig,
+    OctolgpError,
+    OnlineMap,
+    load_scans,
+)
 from octolgp.cli import main
 from octolgp.engines import engine_for
 from octolgp.engines.base import evidence_arrays
@@ -32,10 +40,16 @@ WHOLE = dataclasses.replace(
     CONFIG,
     online=dataclasses.replace(CONFIG.online, halo=0.2),
     lattice=dataclasses.replace(
-        CONFIG.lattice, tile_voxels=16, inducing_spacing=0.3, min_inducing_per_axis=8
+        CONFIG.lattice,
+        tile_voxels=16,
+        inducing_spacing=0.3,
+        min_inducing_per_axis=8,
+        fill_voxels=-1,
     ),
+    training=dataclasses.replace(CONFIG.training, no_return_range=math.inf),
 )
-"""A 2D map as files from before lattice tiles hold it: leaves of 16 fitted whole."""
+"""A 2D map as files from before lattice tiles hold it: leaves of 16 fitted whole (and
+every voxel of a leaf filled, every no-return whole, as then)."""
 
 
 def _scans() -> list:  # type: ignore[type-arg]
@@ -475,7 +489,9 @@ def test_a_3d_map_file_of_leaves_of_four_reopens_as_it_was(tmp_path: Path) -> No
 
     room = simulate_lidar_room(3, seed=1, n_azimuth=128, n_elevation=8, max_range=8.0, n_heldout=1)
     scans = [s.downsample(0.2) for s in room.scans()]
-    config = MapConfig(dim=3, resolution=0.2, hyperparameters=HP)
+    config = MapConfig(
+        dim=3, resolution=0.2, hyperparameters=HP, lattice=LatticeConfig(fill_voxels=-1)
+    )
     old = dataclasses.replace(config, online=dataclasses.replace(config.online, leaf_depth=14))
     path = tmp_path / "old3d.octolgp"
     with OnlineMap(old, path=path) as m:

@@ -349,6 +349,11 @@ def test_unknown_space_is_exactly_half_and_prior() -> None:
     assert free < 0.3
 
 
+def replace_fill(config: MapConfig, fill: int) -> LatticeConfig:
+    """``config``'s lattice settings with ``fill_voxels = fill``."""
+    return dataclasses.replace(config.lattice, fill_voxels=fill)
+
+
 def test_nearest_queries_read_the_voxel_values() -> None:
     m = OnlineMap(config2d(prune=False))
     m.insert_scan(room_scan((0.0, 0.0), size=2.0))
@@ -356,10 +361,14 @@ def test_nearest_queries_read_the_voxel_values() -> None:
     centres = m.grid.voxel_centres(leaf.index)
     jitter = np.random.default_rng(0).uniform(-0.049, 0.049, centres.shape)
     probs = m.occupancy(centres + jitter, interpolate=False)
-    assert np.array_equal(probs, leaf.prob.astype(float))
+    known = ~np.isnan(leaf.prob)  # voxels far from every observation hold no value
+    assert known.any()
+    assert not known.all()
+    assert np.array_equal(probs, np.where(known, leaf.prob.astype(float), 0.5))
     mean, var = m.latent(centres + jitter, interpolate=False)
-    assert np.array_equal(mean, leaf.mean.astype(float))
-    assert np.array_equal(var, leaf.var.astype(float))
+    prior = m.hyperparameters.signal_variance
+    assert np.array_equal(mean, np.where(known, leaf.mean.astype(float), 0.0))
+    assert np.array_equal(var, np.where(known, leaf.var.astype(float), prior))
     pts, prob = m.occupied_voxels(0.5)
     assert (prob > 0.5).all()
     assert pts.shape == (prob.size, 2)
@@ -367,7 +376,8 @@ def test_nearest_queries_read_the_voxel_values() -> None:
 
 
 def test_interpolated_queries_are_multilinear_between_voxel_centres() -> None:
-    m = OnlineMap(config2d(prune=False))
+    config = config2d(prune=False)  # every voxel filled: the blend of four known centres
+    m = OnlineMap(dataclasses.replace(config, lattice=replace_fill(config, -1)))
     m.insert_scan(room_scan((0.0, 0.0), size=2.0))
     hp = m.hyperparameters
     assert hp is not None
@@ -416,7 +426,7 @@ def test_pruned_leaves_hold_one_conservative_value() -> None:
             else:
                 assert leaf.prob[0] == other.prob.min() > 0.971
         else:
-            assert np.array_equal(leaf.prob, other.prob)
+            assert np.array_equal(leaf.prob, other.prob, equal_nan=True)  # NaN: no value
     assert n_pruned > 0
     assert pruned.memory_bytes() < full.memory_bytes()
 

@@ -171,13 +171,14 @@ def test_online_map_far_from_evidence_reads_near_half() -> None:
     The PLSC offset β is large (P would read Φ(β / sqrt(1 + α² σf²)) ≈ 0.64 at the prior
     under plain PLSC), so the test fails without the informed-share rule.
     """
-    from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan
+    from octolgp import Hyperparameters, LatticeConfig, MapConfig, OnlineMap, Scan
 
     hp = Hyperparameters(0.5, 1.0, 0.05, alpha=2.0, beta=0.8)
+    every = LatticeConfig(fill_voxels=-1)  # every voxel of a leaf filled: the GP's own values
     angles = np.linspace(-0.3, 0.3, 7)
     ends = np.c_[np.cos(angles), np.sin(angles)] * 4.0
     scan = Scan(np.zeros(2), ends)
-    with OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp)) as m:
+    with OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=hp, lattice=every)) as m:
         m.insert_scan(scan)
         centres, prob = m.voxels()
     # distance from each voxel centre to the nearest beam segment (origin to hit)

@@ -654,7 +654,12 @@ class RerunSink:
                 level = leaf.var.astype(np.float64) / change.signal_variance
                 none = np.zeros((0, 3))
                 empty = leaf.pruned or leaf.var.size == 0
-                value = (none, none, np.zeros(0)) if empty else (leaf.centres, none, level)
+                known = ~np.isnan(level)  # voxels far from every observation hold no value
+                value = (
+                    (none, none, np.zeros(0))
+                    if empty
+                    else (leaf.centres[known], none, level[known])
+                )
                 variance.put(leaf.key, cell, value)
         for key in change.removed:  # one iteration per leaf that left the map
             voxels.remove(key)
