@@ -57,7 +57,7 @@ except ImportError as exc:  # no ROS 2 here: say what to do, without a traceback
     ) from None
 
 from octolgp import MapConfig, OctolgpError, OnlineMap, Scan
-from octolgp.export.image import occupancy_raster
+from octolgp.export.nav2 import trinary_grid
 from octolgp.geometry.rotations import quaternion_to_matrix
 
 MAP_TOPIC = "/octolgp/map"
@@ -77,6 +77,9 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
         resolution = float(self.declare_parameter("resolution", 0.0).value)
         self.downsample = float(self.declare_parameter("downsample", 0.0).value)
         self.out = Path(str(self.declare_parameter("out", "ros2.octolgp").value))
+        # the map's thresholds on P(occupied), as the nav2 PGM export applies them
+        self.occupied_thresh = float(self.declare_parameter("occupied_thresh", 0.65).value)
+        self.free_thresh = float(self.declare_parameter("free_thresh", 0.25).value)
 
         self.cloud = bool(cloud_topic)
         config = MapConfig.from_toml(config_file) if config_file else MapConfig()
@@ -179,15 +182,23 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
         if centres.shape[0] == 0:
             return  # still buffering the first scans to learn hyperparameters on
         resolution = self.map.config.resolution
-        grid, (xmin, _, ymin, _) = occupancy_raster(centres, prob, resolution)
-        cells = np.where(grid == 0.5, -1, np.rint(100.0 * grid)).astype(np.int8)
+        # trinary, as nav2's static layer reads it: 100 lethal, 0 free, -1 unknown
+        grid = trinary_grid(
+            centres,
+            prob,
+            resolution,
+            occupied_thresh=self.occupied_thresh,
+            free_thresh=self.free_thresh,
+        )
+        xmin, ymin = grid.origin
+        cells = grid.data
 
         msg = OccupancyGrid()
         msg.header.stamp = self.get_clock().now().to_msg()
         msg.header.frame_id = self.fixed_frame
         msg.info.map_load_time = msg.header.stamp
         msg.info.resolution = float(resolution)
-        msg.info.height, msg.info.width = (int(n) for n in grid.shape)
+        msg.info.height, msg.info.width = (int(n) for n in cells.shape)
         msg.info.origin.position.x = float(xmin)  # the corner of cell (0, 0)
         msg.info.origin.position.y = float(ymin)
         msg.info.origin.orientation.w = 1.0

@@ -22,6 +22,7 @@ from octolgp.export.nav2 import (
     UNKNOWN,
     cell_states,
     project_cells,
+    trinary_grid,
     write_nav2_map,
 )
 from octolgp.export.nav2_read import read_nav2_map
@@ -90,6 +91,28 @@ def test_2d_map_round_trip(map2d: Path, tmp_path: Path) -> None:
     pixel = {OCCUPIED: 0, FREE: 254, UNKNOWN: 205}[int(expected[top])]
     assert image[0, col] == pixel
     np.testing.assert_allclose(back.cell_centres().min(axis=0), centres.min(axis=0), atol=1e-9)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_the_occupancy_grid_is_the_pgm_as_map_server_loads_it(
+    map2d: Path, map3d: Path, tmp_path: Path, dim: int
+) -> None:
+    """Every cell the PGM makes occupied is 100 (lethal) in the grid a ROS node publishes;
+    free 0, unknown -1: cell for cell, with the same origin and size."""
+    with OnlineMap.open(map2d if dim == 2 else map3d) as m:
+        centres, prob = m.voxels()
+        res = m.config.resolution
+    option: dict[str, Any] = {} if dim == 2 else {"z_range": (0.1, 2.0)}
+    grid = trinary_grid(centres, prob, res, **option)
+    back = read_nav2_map(write_nav2_map(tmp_path / "m.pgm", centres, prob, res, **option))
+    assert grid.data.dtype == np.int8
+    np.testing.assert_array_equal(grid.data, back.cells)
+    assert grid.origin == pytest.approx(back.origin[:2])
+    assert grid.resolution == back.resolution
+    occupied = back.cells == OCCUPIED
+    assert occupied.sum() > 10
+    assert np.all(grid.data[occupied] == 100)  # nav2's static layer: lethal at 100
+    assert set(np.unique(grid.data).tolist()) <= {-1, 0, 100}
 
 
 def test_yaml_is_what_map_server_reads(tmp_path: Path) -> None:

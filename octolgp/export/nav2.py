@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
@@ -43,8 +44,10 @@ __all__ = [
     "LOAD_OCCUPIED_THRESH",
     "OCCUPIED",
     "UNKNOWN",
+    "TrinaryGrid",
     "cell_states",
     "project_cells",
+    "trinary_grid",
     "write_nav2_map",
 ]
 
@@ -196,6 +199,70 @@ def project_cells(
     return np.asarray((cells + 0.5) * resolution, dtype=np.float64), merged
 
 
+@dataclass(frozen=True)
+class TrinaryGrid:
+    """A map as ``nav_msgs/OccupancyGrid`` holds it: cells 100, 0 or -1.
+
+    Attributes
+    ----------
+    data : ndarray of int8, shape (height, width)
+        :data:`OCCUPIED` (100), :data:`FREE` (0) or :data:`UNKNOWN` (-1) per cell; row 0 is
+        the smallest y, column 0 the smallest x (``OccupancyGrid.data`` is ``data.ravel()``).
+    origin : tuple of float
+        ``(x, y)`` of the lower-left corner of cell (0, 0), world frame, metres.
+    resolution : float
+        Metres per cell.
+    """
+
+    data: Int8Array
+    origin: tuple[float, float]
+    resolution: float
+
+
+def trinary_grid(
+    centres: ArrayLike,
+    prob: ArrayLike,
+    resolution: float,
+    *,
+    occupied_thresh: float = 0.65,
+    free_thresh: float = 0.25,
+    z: float | None = None,
+    z_range: tuple[float, float] | None = None,
+) -> TrinaryGrid:
+    """The cells of a map by its thresholds, as a nav2 ``OccupancyGrid`` (trinary).
+
+    Every cell the PGM of :func:`write_nav2_map` makes black is 100 (lethal to nav2's
+    static layer), white 0 and grey -1: the two are one rasterisation.
+
+    Parameters
+    ----------
+    centres, prob, resolution, occupied_thresh, free_thresh, z, z_range
+        As :func:`write_nav2_map`.
+
+    Raises
+    ------
+    OctolgpError
+        On bad arrays, thresholds or slice arguments, no voxel, or more than 10^8 cells.
+    """
+    c = as_centres(centres, (2, 3))
+    states = cell_states(
+        as_prob(prob, c.shape[0]), occupied_thresh=occupied_thresh, free_thresh=free_thresh
+    )
+    cells_xy, cell_state = project_cells(c, states, resolution, z=z, z_range=z_range)
+    if not cells_xy.shape[0]:
+        raise OctolgpError("nav2 map: the map has no voxel to write")
+    index = np.floor(cells_xy / resolution).astype(np.int64)
+    low = index.min(axis=0)
+    nx, ny = (index.max(axis=0) - low + 1).tolist()
+    if nx * ny > _MAX_CELLS:
+        raise OctolgpError(f"nav2 map: {nx} x {ny} cells at resolution {resolution:g} is too many")
+    data = np.full((ny, nx), UNKNOWN, dtype=np.int8)
+    rel = index - low
+    data[rel[:, 1], rel[:, 0]] = cell_state
+    origin = low * resolution
+    return TrinaryGrid(data, (float(origin[0]), float(origin[1])), float(resolution))
+
+
 def write_nav2_map(
     path: PathLike,
     centres: ArrayLike,
@@ -239,26 +306,23 @@ def write_nav2_map(
     pgm = Path(path)
     if pgm.suffix.lower() != ".pgm":
         raise OctolgpError(f"nav2 map: path must end in .pgm, got {os.fspath(path)!r}")
-    c = as_centres(centres, (2, 3))
-    states = cell_states(
-        as_prob(prob, c.shape[0]), occupied_thresh=occupied_thresh, free_thresh=free_thresh
+    cells = trinary_grid(
+        centres,
+        prob,
+        resolution,
+        occupied_thresh=occupied_thresh,
+        free_thresh=free_thresh,
+        z=z,
+        z_range=z_range,
     )
-    cells_xy, cell_state = project_cells(c, states, resolution, z=z, z_range=z_range)
-    if not cells_xy.shape[0]:
-        raise OctolgpError("nav2 map: the map has no voxel to write")
-    index = np.floor(cells_xy / resolution).astype(np.int64)
-    low = index.min(axis=0)
-    nx, ny = (index.max(axis=0) - low + 1).tolist()
-    if nx * ny > _MAX_CELLS:
-        raise OctolgpError(f"nav2 map: {nx} x {ny} cells at resolution {resolution:g} is too many")
-    grid = np.full((ny, nx), _PIXEL[UNKNOWN], dtype=np.uint8)
-    lut = np.array([_PIXEL[FREE], _PIXEL[OCCUPIED], _PIXEL[UNKNOWN]], dtype=np.uint8)
+    ny, nx = cells.data.shape
     # state -> pixel: FREE 0 -> 254, OCCUPIED 100 -> 0, UNKNOWN -1 -> 205
-    which = np.where(cell_state == FREE, 0, np.where(cell_state == OCCUPIED, 1, 2))
-    rel = index - low
-    grid[ny - 1 - rel[:, 1], rel[:, 0]] = lut[which]  # image row 0 is the largest y
+    grid = np.full((ny, nx), _PIXEL[UNKNOWN], dtype=np.uint8)
+    grid[cells.data == FREE] = _PIXEL[FREE]
+    grid[cells.data == OCCUPIED] = _PIXEL[OCCUPIED]
+    grid = grid[::-1]  # image row 0 is the largest y
     header = f"P5\n# octolgp occupancy, {float(resolution)!r} m per cell\n{nx} {ny}\n255\n"
-    origin = low * resolution
+    origin = cells.origin
     yaml = pgm.with_suffix(".yaml")
     occ, free = float(occupied_thresh), float(free_thresh)
     text = (
