@@ -90,3 +90,26 @@ def test_progress_lines_off_a_terminal(
     assert lines[-1].startswith("octolgp: scan 20/20 (100%), ")
     assert "ETA 0:00" in lines[-1]
     assert online.progress_line(3, None, 1.5, 7) == "octolgp: scan 3, 2.0 scans/s, 7 leaves"
+
+
+KITTI = Path(__file__).resolve().parent / "data" / "kitti" / "sequences" / "00"
+
+
+@pytest.mark.parametrize("frame", ["velodyne", "cam0"])
+def test_run_reads_kitti_in_the_frame_asked(tmp_path: Path, frame: str) -> None:
+    from octolgp.io import read_kitti
+
+    out = tmp_path / "m.octolgp"
+    argv = ["run", str(KITTI), "--out", str(out), "--learn-scans", "2", "--quiet"]
+    if frame == "cam0":
+        argv += ["--kitti-frame", "cam0"]
+    assert main(argv) == 0
+    with OnlineMap.open(out, read_only=True) as m:
+        journaled = list(m.scans())
+        precision = m.config.online.scan_precision
+    want = [s.rounded(precision) for s in read_kitti(KITTI, world=frame)]
+    for got, scan in zip(journaled, want, strict=True):
+        np.testing.assert_array_equal(got.points, scan.points)
+    # z up in the Velodyne's frame: the sensor stays at one height while it drives
+    heights = np.array([s.origin[2] for s in journaled])
+    assert (np.ptp(heights) < 0.5) == (frame == "velodyne")

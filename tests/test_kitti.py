@@ -61,9 +61,9 @@ def test_fixture_is_guessed_and_forced() -> None:
 
 
 def test_world_frames_and_origins() -> None:
-    reader = read_kitti(SEQUENCE)
+    reader = read_kitti(SEQUENCE, world="cam0")
     cam0 = list(reader)
-    velo = list(read_kitti(SEQUENCE, world="velodyne"))
+    velo = list(read_kitti(SEQUENCE))  # the default: the Velodyne's frame, z up
     Tr = reader.calibration
     np.testing.assert_allclose(Tr, read_kitti_calib(SEQUENCE / "calib.txt"))
     poses = read_kitti_poses(DATA / "poses" / "00.txt")
@@ -92,7 +92,7 @@ def test_points_are_posed_exactly(tmp_path: Path) -> None:
     scans = list(load_scans(seq))
     Tr = _rigid(-np.pi / 2, (0.1, -0.2, -0.3))
     for scan, xyz, P in zip(scans, points, poses, strict=True):
-        T = P @ Tr
+        T = np.linalg.inv(Tr) @ P @ Tr  # the Velodyne's frame at frame 0 (the default)
         np.testing.assert_allclose(scan.points, xyz @ T[:3, :3].T + T[:3, 3], atol=1e-9)
         np.testing.assert_allclose(scan.origin, T[:3, 3], atol=1e-12)
     # poses= elsewhere; frames numbered from a file name, not a count

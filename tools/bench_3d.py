@@ -966,7 +966,7 @@ def kitti_scene(args: argparse.Namespace) -> Scene | str:
         raw,
         args.kitti_splits,
         "A simulated street in the KITTI odometry layout (16 x 24 beams, returns only, "
-        "`load_scans`, cam0 world frame):",
+        "`load_scans`, the Velodyne's world frame, z up):",
     )
 
 

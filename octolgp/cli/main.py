@@ -184,6 +184,13 @@ def make_parser() -> argparse.ArgumentParser:
         help="keep one beam per voxel of this edge, metres (Scan.downsample; for 3D lidar)",
     )
     run.add_argument(
+        "--kitti-frame",
+        choices=["velodyne", "cam0"],
+        default="velodyne",
+        help="a KITTI sequence's world frame: the Velodyne's at frame 0 (default, z up) or "
+        "the poses' camera frame (y down)",
+    )
+    run.add_argument(
         "--max-range",
         type=_positive_float,
         default=None,

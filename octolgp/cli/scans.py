@@ -12,7 +12,9 @@ from octolgp.errors import OctolgpError
 __all__ = ["check_scans", "first_and_rest", "refused_scan", "scan_total"]
 
 
-def first_and_rest(path: str, fmt: str | None, skip_bad: bool = False) -> tuple[Any, Iterator[Any]]:
+def first_and_rest(
+    path: str, fmt: str | None, skip_bad: bool = False, kitti_frame: str | None = None
+) -> tuple[Any, Iterator[Any]]:
     """The first scan of a log (to learn its dimension) and an iterator over all of them.
 
     With ``skip_bad`` the reader skips malformed parts; once the iterator is exhausted a
@@ -20,9 +22,13 @@ def first_and_rest(path: str, fmt: str | None, skip_bad: bool = False) -> tuple[
     """
     import itertools
 
-    from octolgp.io import load_scans
+    from octolgp.io import detect_format, load_scans, read_kitti
 
-    reader = load_scans(path, format=fmt, skip_bad=skip_bad)
+    kitti = Path(path).is_dir() and (fmt or detect_format(Path(path))) == "kitti"
+    if kitti_frame is not None and kitti:
+        reader: Any = read_kitti(path, world=kitti_frame, skip_bad=skip_bad)
+    else:
+        reader = load_scans(path, format=fmt, skip_bad=skip_bad)
     it = iter(reader)
 
     def report() -> Iterator[Any]:

@@ -16,10 +16,10 @@ development kit's ``readme.txt``)::
 - ``poses/NN.txt``: line ``i + 1`` is the 3 x 4 pose ``P_i`` (row-major, 12 numbers) of
   ``cam0`` at frame ``i`` in the frame of ``cam0`` at frame 0.
 
-Each scan becomes a :class:`~octolgp.scan.Scan` in the world frame of the poses: the point
-``p`` becomes ``P_i Tr p`` and the origin, the Velodyne's position, ``P_i Tr 0``. That world is
-``cam0``'s at frame 0, so its y axis points down; with ``world="velodyne"`` the world is the
-Velodyne's at frame 0 instead (``Tr^-1 P_i Tr p``: z up, as octolgp's height slices expect).
+Each scan becomes a :class:`~octolgp.scan.Scan` in a world frame fixed at frame 0: by default
+(``world="velodyne"``) the Velodyne's at frame 0 (``Tr^-1 P_i Tr p``, origin ``Tr^-1 P_i Tr
+0``: x forward, y left, z up, as octolgp's height colours, slices and ``--z-range`` expect);
+with ``world="cam0"`` the poses' own, ``cam0``'s at frame 0 (``P_i Tr p``: y down).
 """
 
 from __future__ import annotations
@@ -218,9 +218,9 @@ class KittiReader(CloudReader):
         The sequence directory ``.../sequences/NN`` (``calib.txt``, ``velodyne/*.bin``).
     poses : str or Path, optional
         Ground-truth poses; ``.../poses/NN.txt`` beside ``sequences/`` when omitted.
-    world : {"cam0", "velodyne"}
-        The world frame: ``cam0`` at frame 0, the poses' own (default; y down), or the
-        Velodyne at frame 0 (z up).
+    world : {"velodyne", "cam0"}
+        The world frame: the Velodyne at frame 0 (default; z up), or ``cam0`` at frame 0,
+        the poses' own (y down).
     skip_bad : bool
         Skip and count points with a NaN or inf coordinate and unreadable scans (a size that
         is not a multiple of 16 bytes, no finite point) instead of raising. ``calib.txt`` and
@@ -260,7 +260,7 @@ class KittiReader(CloudReader):
         path: str | Path,
         *,
         poses: str | Path | None = None,
-        world: str = "cam0",
+        world: str = "velodyne",
         skip_bad: bool = False,
         max_range: float | None = None,
     ) -> None:
@@ -349,7 +349,7 @@ def read_kitti(
     path: str | Path,
     *,
     poses: str | Path | None = None,
-    world: str = "cam0",
+    world: str = "velodyne",
     skip_bad: bool = False,
     max_range: float | None = None,
 ) -> KittiReader:
