@@ -113,3 +113,37 @@ def test_run_reads_kitti_in_the_frame_asked(tmp_path: Path, frame: str) -> None:
     # z up in the Velodyne's frame: the sensor stays at one height while it drives
     heights = np.array([s.origin[2] for s in journaled])
     assert (np.ptp(heights) < 0.5) == (frame == "velodyne")
+
+
+BAG = Path(__file__).resolve().parent / "data" / "rosbag" / "intel.bag"
+
+
+def test_run_reads_a_bag_with_the_topics_and_frame_asked(tmp_path: Path) -> None:
+    from octolgp.io import read_rosbag
+
+    out = tmp_path / "m.octolgp"
+    argv = ["run", str(BAG), "--out", str(out), "--learn-scans", "5", "--quiet"]
+    assert main([*argv, "--scan-topic", "/scan", "--frame", "odom"]) == 0
+    with OnlineMap.open(out, read_only=True) as m:
+        journaled = list(m.scans())
+        precision = m.config.online.scan_precision
+    want = [s.rounded(precision) for s in read_rosbag(BAG, scan_topic="/scan", frame="odom")]
+    assert len(journaled) == len(want) == 20
+    for got, scan in zip(journaled, want, strict=True):
+        np.testing.assert_array_equal(got.points, scan.points)
+    in_map = next(iter(read_rosbag(BAG)))  # the default frame, map: the scans move
+    assert not np.allclose(in_map.origin, journaled[0].origin)
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--scan-topic", "/scan"], "--scan-topic: for ROS bags only"),
+        (["--frame", "odom", "--pose-topic", "/pose"], "--pose-topic, --frame: for ROS bags"),
+    ],
+)
+def test_bag_flags_on_another_log_exit_2(
+    argv: list[str], message: str, tmp_path: Path, cli_exit_2: Callable[..., str]
+) -> None:
+    run = ["run", str(INTEL20), "--out", str(tmp_path / "m.octolgp"), *argv]
+    cli_exit_2(run, tmp_path, message)

@@ -183,6 +183,11 @@ def make_parser() -> argparse.ArgumentParser:
         metavar="VOXEL",
         help="keep one beam per voxel of this edge, metres (Scan.downsample; for 3D lidar)",
     )
+    run.add_argument("--scan-topic", default=None, help="ROS bag: the scans' topic")
+    run.add_argument("--pose-topic", default=None, help="ROS bag: a pose topic instead of /tf")
+    run.add_argument(
+        "--frame", default=None, help="ROS bag: the fixed frame (default: map, else odom)"
+    )
     run.add_argument(
         "--kitti-frame",
         choices=["velodyne", "cam0"],

@@ -276,7 +276,9 @@ def _map_scans(
 
 def cmd_run(args: argparse.Namespace) -> int:
     """``octolgp run``: map a scan log online, scan by scan."""
-    first, scans = first_and_rest(args.scans, args.format, args.skip_bad, args.kitti_frame)
+    names = ("scan_topic", "pose_topic", "frame")
+    bag = {k: getattr(args, k) for k in names if getattr(args, k) is not None}
+    first, scans = first_and_rest(args.scans, args.format, args.skip_bad, args.kitti_frame, bag)
     if args.max_range is not None or args.downsample is not None:
         scans = (prepared(s, args.max_range, args.downsample) for s in scans)
     total = None if args.quiet else scan_total(args.scans, args.format, args.limit)

@@ -13,20 +13,38 @@ __all__ = ["check_scans", "first_and_rest", "refused_scan", "scan_total"]
 
 
 def first_and_rest(
-    path: str, fmt: str | None, skip_bad: bool = False, kitti_frame: str | None = None
+    path: str,
+    fmt: str | None,
+    skip_bad: bool = False,
+    kitti_frame: str | None = None,
+    bag: dict[str, str] | None = None,
 ) -> tuple[Any, Iterator[Any]]:
     """The first scan of a log (to learn its dimension) and an iterator over all of them.
 
     With ``skip_bad`` the reader skips malformed parts; once the iterator is exhausted a
-    line on stderr says how many it skipped.
+    line on stderr says how many it skipped. ``kitti_frame`` (``"velodyne"`` or
+    ``"cam0"``) picks a KITTI sequence's world frame; ``bag`` (``scan_topic``,
+    ``pose_topic``, ``frame``: the flags given) a ROS bag's topics and fixed frame, and is
+    refused for another format.
     """
     import itertools
 
-    from octolgp.io import detect_format, load_scans, read_kitti
+    from octolgp.io import detect_format, load_scans, read_kitti, read_rosbag
 
-    kitti = Path(path).is_dir() and (fmt or detect_format(Path(path))) == "kitti"
-    if kitti_frame is not None and kitti:
-        reader: Any = read_kitti(path, world=kitti_frame, skip_bad=skip_bad)
+    kind = fmt or (detect_format(Path(path)) if Path(path).exists() else None)
+    if bag and kind != "rosbag":
+        flags = ", ".join("--" + k.replace("_", "-") for k in bag)
+        raise OctolgpError(f"{flags}: for ROS bags only; SCANS {path!r} is not one")
+    if bag:
+        reader: Any = read_rosbag(
+            path,
+            scan_topic=bag.get("scan_topic"),
+            pose_topic=bag.get("pose_topic"),
+            frame=bag.get("frame"),
+            skip_bad=skip_bad,
+        )
+    elif kitti_frame is not None and kind == "kitti":
+        reader = read_kitti(path, world=kitti_frame, skip_bad=skip_bad)
     else:
         reader = load_scans(path, format=fmt, skip_bad=skip_bad)
     it = iter(reader)
