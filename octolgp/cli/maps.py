@@ -124,16 +124,17 @@ def cmd_export(args: argparse.Namespace) -> int:
             nodes = m.export_octomap(out, threshold=args.threshold)
             print(f"wrote {out}: {nodes} OctoMap nodes")
             return 0
+        if out.suffix in (".ply", ".pcd"):  # streamed: one chunk of voxels at a time
+            from octolgp.export.pcd import write_pcd_chunks
+            from octolgp.export.ply import write_ply_chunks
+
+            occupied = ((c[p > args.threshold], p[p > args.threshold]) for c, p in m.voxel_chunks())
+            write = write_ply_chunks if out.suffix == ".ply" else write_pcd_chunks
+            n = write(out, occupied)
+            print(f"wrote {out}: {n} occupied voxel centres with P(occupied)")
+            return 0
         centres, prob = m.voxels()
         res = m.config.resolution
-    if out.suffix in (".ply", ".pcd"):
-        from octolgp.export.pcd import write_pcd
-        from octolgp.export.ply import write_ply
-
-        keep = prob > args.threshold
-        (write_ply if out.suffix == ".ply" else write_pcd)(out, centres[keep], prob[keep])
-        print(f"wrote {out}: {int(keep.sum())} occupied voxel centres with P(occupied)")
-        return 0
     if out.suffix == ".pgm":
         return _export_nav2(args, out, centres, prob, res, z_range)
     if centres.shape[1] == 3:  # a height slice of a 3D map

@@ -12,7 +12,9 @@ import contextlib
 import io
 import os
 import secrets
-from collections.abc import Iterator
+import shutil
+import tempfile
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -101,6 +103,43 @@ def xyz_prob_body(centres: ArrayLike, prob: ArrayLike, *, binary: bool) -> tuple
     rows = np.column_stack([record[name] for name in ("x", "y", "z", "prob")])
     np.savetxt(text, rows, fmt="%.9g")
     return c.shape[0], text.getvalue().encode("ascii")
+
+
+def write_xyz_prob_stream(
+    path: PathLike,
+    header_of: Callable[[int], bytes],
+    chunks: Iterable[tuple[ArrayLike, ArrayLike]],
+    *,
+    binary: bool,
+) -> int:
+    """Write ``header_of(count)`` then the records of every chunk, one chunk in memory at a time.
+
+    The records (:func:`xyz_prob_body`) go to a temporary file beside ``path`` first, since
+    the header needs their count; then header and records become ``path`` through
+    :func:`replacing`. Returns the count.
+
+    Raises
+    ------
+    OctolgpError
+        As :func:`xyz_prob_body` for a bad chunk, or naming ``path`` when it cannot be
+        written; the file that was there is kept.
+    """
+    n = 0
+    target = Path(path)
+    where = target.parent if target.parent.is_dir() else None
+    try:
+        with tempfile.TemporaryFile(dir=where) as body:
+            for centres, prob in chunks:  # one chunk of records per iteration
+                k, records = xyz_prob_body(centres, prob, binary=binary)
+                body.write(records)
+                n += k
+            body.seek(0)
+            with replacing(path) as tmp, open(tmp, "wb") as out:
+                out.write(header_of(n))
+                shutil.copyfileobj(body, out, 1 << 20)
+    except OSError as exc:
+        raise OctolgpError(f"cannot write {os.fspath(path)!r}: {exc}") from None
+    return n
 
 
 SQLITE_SIDECARS = ("-journal", "-wal", "-shm")

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from numpy.typing import ArrayLike
 
-from octolgp.export.common import PathLike, write_bytes, xyz_prob_body
+from octolgp.export.common import PathLike, write_xyz_prob_stream
 
-__all__ = ["write_pcd"]
+__all__ = ["write_pcd", "write_pcd_chunks"]
 
 
 def write_pcd(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bool = True) -> None:
@@ -35,12 +37,24 @@ def write_pcd(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bo
         On a bad shape or non-finite value in ``centres`` or ``prob``, ``prob`` outside
         [0, 1], or a ``path`` that cannot be written.
     """
-    n, body = xyz_prob_body(centres, prob, binary=binary)
-    header = (
-        "# .PCD v0.7 - Point Cloud Data file format\n"
-        "# octolgp occupied voxel centres, P(occupied) in prob\n"
-        "VERSION 0.7\nFIELDS x y z prob\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
-        f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
-        f"DATA {'binary' if binary else 'ascii'}\n"
-    ).encode("ascii")
-    write_bytes(path, [header, body])
+    write_pcd_chunks(path, [(centres, prob)], binary=binary)
+
+
+def write_pcd_chunks(
+    path: PathLike, chunks: Iterable[tuple[ArrayLike, ArrayLike]], *, binary: bool = True
+) -> int:
+    """:func:`write_pcd` of ``(centres, prob)`` chunks, one in memory at a time (the same bytes).
+
+    Returns the number of points written.
+    """
+
+    def header(n: int) -> bytes:
+        return (
+            "# .PCD v0.7 - Point Cloud Data file format\n"
+            "# octolgp occupied voxel centres, P(occupied) in prob\n"
+            "VERSION 0.7\nFIELDS x y z prob\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+            f"WIDTH {n}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {n}\n"
+            f"DATA {'binary' if binary else 'ascii'}\n"
+        ).encode("ascii")
+
+    return write_xyz_prob_stream(path, header, chunks, binary=binary)

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
+
 from numpy.typing import ArrayLike
 
-from octolgp.export.common import PathLike, write_bytes, xyz_prob_body
+from octolgp.export.common import PathLike, write_xyz_prob_stream
 
 
 def write_ply(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bool = True) -> None:
@@ -28,10 +30,23 @@ def write_ply(path: PathLike, centres: ArrayLike, prob: ArrayLike, *, binary: bo
         On a bad shape or non-finite value in ``centres`` or ``prob``, ``prob``
         outside [0, 1], or a ``path`` that cannot be written.
     """
-    n, body = xyz_prob_body(centres, prob, binary=binary)
+    write_ply_chunks(path, [(centres, prob)], binary=binary)
+
+
+def write_ply_chunks(
+    path: PathLike, chunks: Iterable[tuple[ArrayLike, ArrayLike]], *, binary: bool = True
+) -> int:
+    """:func:`write_ply` of ``(centres, prob)`` chunks, one in memory at a time (the same bytes).
+
+    Returns the number of points written.
+    """
     fmt = "binary_little_endian" if binary else "ascii"
-    header = (
-        f"ply\nformat {fmt} 1.0\ncomment octolgp occupancy\nelement vertex {n}\n"
-        "property float x\nproperty float y\nproperty float z\nproperty float prob\nend_header\n"
-    ).encode("ascii")
-    write_bytes(path, [header, body])
+
+    def header(n: int) -> bytes:
+        return (
+            f"ply\nformat {fmt} 1.0\ncomment octolgp occupancy\nelement vertex {n}\n"
+            "property float x\nproperty float y\nproperty float z\nproperty float prob\n"
+            "end_header\n"
+        ).encode("ascii")
+
+    return write_xyz_prob_stream(path, header, chunks, binary=binary)

@@ -272,8 +272,23 @@ class MapReads:
         centres : ndarray of shape (k, d)
         prob : ndarray of shape (k,)
         """
-        cs, ps = [], []
+        chunks = list(self.voxel_chunks())
+        if not chunks:
+            return np.zeros((0, self.config.dim)), np.zeros(0)
+        return np.concatenate([c for c, _ in chunks]), np.concatenate([p for _, p in chunks])
+
+    def voxel_chunks(self, size: int = QUERY_CHUNK) -> Iterator[tuple[FloatArray, FloatArray]]:
+        """:meth:`voxels` in chunks of about ``size`` voxels, leaf by leaf in key order.
+
+        Holds one chunk (and the store's batch of evicted leaves read back) at a time, so
+        an export of a large map is bounded by the chunk, not the map; the chunks
+        concatenated are :meth:`voxels`. The map is held for reads until the iterator is
+        exhausted or closed.
+        """
         with self._reading() as m:
+            cs: list[FloatArray] = []
+            ps: list[FloatArray] = []
+            held = 0
             for _, leaf in m.store.items():  # one iteration per leaf
                 if leaf.prob.size == 0:
                     continue
@@ -282,9 +297,12 @@ class MapReads:
                 known = ~np.isnan(prob)
                 cs.append(centres[known])
                 ps.append(prob[known])
-        if not cs:
-            return np.zeros((0, self.config.dim)), np.zeros(0)
-        return np.concatenate(cs), np.concatenate(ps)
+                held += int(known.sum())
+                if held >= size:
+                    yield np.concatenate(cs), np.concatenate(ps)
+                    cs, ps, held = [], [], 0
+            if cs:
+                yield np.concatenate(cs), np.concatenate(ps)
 
     def occupied_voxels(self, threshold: float = 0.5) -> tuple[FloatArray, FloatArray]:
         """Centres and P(occupied) of the voxels above ``threshold``."""
