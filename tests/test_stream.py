@@ -306,8 +306,11 @@ def test_the_blueprint_is_a_default_blueprint(tmp_path: Path, how: str) -> None:
         m.insert_scans(_scans(2))
     rec.flush()
     rec.disconnect()
-    assert _activations(rrd) == [(False, True)]
-    assert len(RrdReader(rrd).blueprints()) == 1
+    # sent as the default, never made active; the sink's own follows the map (2D)
+    sent = _activations(rrd)
+    assert set(sent) == {(False, True)}
+    assert (len(sent) > 1) == (how == "sink")
+    assert len(RrdReader(rrd).blueprints()) == len(sent)
 
 
 def test_blueprints_for_each_dimension() -> None:
@@ -361,7 +364,9 @@ def test_run_then_replay_gives_the_same_map(tmp_path: Path) -> None:
     assert len(rows) < n_leaves / 4
     # 74 kB per scan here (every tile is new; 1,230 kB per scan with one entity per leaf)
     assert rrd.stat().st_size / len(list(load_scans(INTEL20))) < 100e3
-    assert _activations(rrd) == [(False, True)]  # the CLI's default blueprint
+    sent = _activations(rrd)  # the CLI's default blueprint, then bounded on the map
+    assert len(sent) > 1
+    assert set(sent) == {(False, True)}
     ca, pa = _voxel_values(a)
     cb, pb = _voxel_values(b)
     assert ca.shape[0] > 1000
@@ -497,3 +502,25 @@ def test_a_served_map_is_served_until_ctrl_c(tmp_path: Path, option: str) -> Non
     assert proc.returncode == 0, "".join(lines) + out
     assert "stopped serving" in out
     assert "Traceback" not in out
+
+
+def test_the_2d_view_opens_on_what_the_map_knows(tmp_path: Path) -> None:
+    """The default view's bounds hold every voxel with a value, with a margin, and not the
+    scans' 80 m no-return rays (which the view's own default, everything logged, would)."""
+    rec = rr.RecordingStream("octolgp-test")
+    rec.save(tmp_path / "m.rrd")
+    sink = RerunSink(rec)
+    scans = list(load_scans(INTEL20))
+    with OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP), sink=sink) as m:
+        m.insert_scans(scans)
+        centres, _ = m.voxels()
+    rec.disconnect()
+    assert sink.shown is not None
+    (x0, x1), (y0, y1) = sink.shown
+    assert x0 < centres[:, 0].min()
+    assert centres[:, 0].max() < x1
+    assert y0 < centres[:, 1].min()
+    assert centres[:, 1].max() < y1
+    rays = np.concatenate([s.points for s in scans])
+    assert np.ptp(rays[:, 0]) > 2 * (x1 - x0)  # the rays reach far beyond the map
+    assert x1 - x0 < 1.3 * np.ptp(centres[:, 0]) + 2.1  # the map, a tenth and a metre a side

@@ -67,7 +67,13 @@ def _sink(rec: Any, args: argparse.Namespace) -> Any:
     """The Rerun sink of ``run``'s recording, with the ``--rerun-*`` options."""
     from octolgp.sinks.rerun import RerunSink
 
-    return RerunSink(rec, rays=args.rerun_rays, uncertainty=args.rerun_uncertainty, blueprint=False)
+    return RerunSink(
+        rec,
+        rays=args.rerun_rays,
+        uncertainty=args.rerun_uncertainty,
+        blueprint=False,  # the recording has the CLI's default blueprint
+        follow=True,  # which the sink bounds on the map as it grows
+    )
 
 
 def _reopen(out: Path, config: Any, config_file: Path, given: str | None) -> Any:

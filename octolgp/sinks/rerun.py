@@ -463,6 +463,10 @@ class RerunSink:
         Voxels per 3D region edge (rounded up to whole leaves).
     grey_steps : int
         Steps from white to black of the 2D images (:data:`GREY_STEPS`; 255: every level).
+    follow : bool, optional
+        2D: send :func:`default_blueprint` again, as the default, with the view's bounds
+        on what the map knows (:attr:`shown`) whenever the map outgrows them, so the view
+        opens on the map and not on the scans' longest rays. Default: ``blueprint``.
     """
 
     def __init__(
@@ -475,6 +479,7 @@ class RerunSink:
         tile: int = TILE,
         region: int = REGION,
         grey_steps: int = GREY_STEPS,
+        follow: bool | None = None,
     ) -> None:
         if min(tile, region, grey_steps) < 1 or grey_steps > 255:
             raise OctolgpError(
@@ -488,6 +493,7 @@ class RerunSink:
         self.region = int(region)
         self.grey_steps = int(grey_steps)
         self._blueprint = blueprint
+        self._follow_view = blueprint if follow is None else bool(follow)
         self._started = False
         self._path: list[NDArray[np.float64]] = []  # origins of the current path block
         self._occupancy: _Tiles | None = None
@@ -495,6 +501,8 @@ class RerunSink:
         self._voxels: _Regions | None = None
         self._variance3d: _Regions | None = None
         self._heights: tuple[float, float] | None = None
+        self.shown: tuple[tuple[float, float], tuple[float, float]] | None = None
+        self._known: tuple[FloatArray, FloatArray] | None = None
 
     # ------------------------------------------------------------------ events
     def on_scan(self, scan: Scan, index: int) -> None:
@@ -603,6 +611,11 @@ class RerunSink:
                     prob[i] = leaf.prob
                 if var is not None and leaf.var.size:
                     var[i] = leaf.var
+            known = ~np.isnan(prob).all(axis=1)
+            if known.any():  # the view follows what the map knows, not the scans' rays
+                lo = np.array([leaf.lo for leaf in leaves])[known].min(axis=0)
+                hi = np.array([leaf.hi for leaf in leaves])[known].max(axis=0)
+                self._follow(lo, hi)
             keys = [leaf.key for leaf in leaves]
             cells = np.rint(np.array([leaf.lo for leaf in leaves]) / res).astype(np.int64)
             occupancy.paint(keys, cells, self._grey(prob, occupancy.fill).reshape(-1, side, side))
@@ -618,6 +631,30 @@ class RerunSink:
         self._log_tiles("map/tiles", occupancy, res)
         if variance is not None:
             self._log_tiles("map/variance", variance, res)
+
+    def _follow(self, lo: FloatArray, hi: FloatArray) -> None:
+        """Grow the default 2D view to hold the box ``lo``-``hi`` (metres), with a margin.
+
+        The first known leaves set :attr:`shown`; a leaf outside it widens it by a tenth of
+        its size (at least a metre) on every side and sends the default blueprint again
+        (``make_default``, not active: a layout the user chose is kept).
+        """
+        if self._known is not None:
+            lo, hi = np.minimum(lo, self._known[0]), np.maximum(hi, self._known[1])
+        self._known = (lo, hi)  # what the map knows, without the margin
+        if self.shown is not None:
+            (x0, x1), (y0, y1) = self.shown
+            if lo[0] >= x0 and lo[1] >= y0 and hi[0] <= x1 and hi[1] <= y1:
+                return
+        pad = np.maximum(0.1 * (hi - lo), 1.0)
+        a, b = lo - pad, hi + pad
+        self.shown = ((float(a[0]), float(b[0])), (float(a[1]), float(b[1])))
+        if self._follow_view:
+            self.rec.send_blueprint(
+                default_blueprint(2, uncertainty=self.uncertainty, bounds=self.shown),
+                make_active=False,
+                make_default=True,
+            )
 
     def _grey(self, prob: FloatArray, fill: int) -> NDArray[np.uint8]:
         """Grey levels of P (:func:`_grey`), ``fill`` where P is NaN."""
