@@ -46,7 +46,7 @@ def first_and_rest(
     elif kitti_frame is not None and kind == "kitti":
         reader = read_kitti(path, world=kitti_frame, skip_bad=skip_bad)
     else:
-        reader = load_scans(path, format=fmt, skip_bad=skip_bad)
+        reader = load_scans(path, format=kind, skip_bad=skip_bad)  # detected once
     it = iter(reader)
 
     def report() -> Iterator[Any]:

@@ -114,8 +114,10 @@ def write_xyz_prob_stream(
 ) -> int:
     """Write ``header_of(count)`` then the records of every chunk, one chunk in memory at a time.
 
-    The records (:func:`xyz_prob_body`) go to a temporary file beside ``path`` first, since
-    the header needs their count; then header and records become ``path`` through
+    Chunks given as a list are in memory already: their records are written after the
+    header at once (:func:`write_bytes`). Other iterables are streamed: the records
+    (:func:`xyz_prob_body`) go to a temporary file beside ``path`` first, since the
+    header needs their count; then header and records become ``path`` through
     :func:`replacing`. Returns the count.
 
     Raises
@@ -124,6 +126,11 @@ def write_xyz_prob_stream(
         As :func:`xyz_prob_body` for a bad chunk, or naming ``path`` when it cannot be
         written; the file that was there is kept.
     """
+    if isinstance(chunks, list):
+        bodies = [xyz_prob_body(centres, prob, binary=binary) for centres, prob in chunks]
+        n = sum(k for k, _ in bodies)
+        write_bytes(path, [header_of(n), *(body for _, body in bodies)])
+        return n
     n = 0
     target = Path(path)
     where = target.parent if target.parent.is_dir() else None

@@ -494,19 +494,14 @@ class LeafStore:
     def items(self) -> Iterator[tuple[int, Leaf]]:
         """``(key, leaf)`` in ascending key order; evicted leaves are read, not kept.
 
-        Evicted leaves are read in batches of :attr:`batch`.
+        Evicted leaves are read in batches of :attr:`batch` (:meth:`peek_many`).
         """
         keys, size = sorted(self._keys), self.batch
         for lo in range(0, len(keys), size):  # one batch of keys per iteration
             batch = keys[lo : lo + size]
-            found = {k: leaf for k in batch if (leaf := self._leaves.get(k)) is not None}
-            missing = [k for k in batch if k not in found]
-            if missing and self.backing is not None:
-                read = self._with_values([self.backing.read_leaf(k) for k in missing])
-                found.update(zip(missing, read, strict=True))
-            for key in batch:  # one iteration per leaf
-                if key in found:
-                    yield key, found[key]
+            for key, leaf in zip(batch, self.peek_many(batch), strict=True):  # one per leaf
+                if leaf is not None:
+                    yield key, leaf
 
     @property
     def resident(self) -> int:
