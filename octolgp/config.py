@@ -251,10 +251,10 @@ class LearningConfig:
     max_beams : int or None
         On the voxel model, the learning scans are thinned to every k-th beam (the
         smallest k) so that at most this many beams are turned into voxel
-        observations; ``None``: every beam. The sets hold a few thousand items, while
-        five lidar scans to 80 m observe millions of voxels, most of the learning's
-        time; 40 scans of a 2D laser (up to 361 beams) stay whole, five filtered lidar
-        scans keep every 2nd to 4th beam (BENCHMARKS.md, "Live 3D, third part").
+        observations; ``None``: every beam. The sets hold a few thousand items and
+        only the voxels near their seeds are counted, but every beam is walked: five
+        lidar scans to 80 m cross millions of voxels. 40 scans of a 2D laser (up to
+        361 beams) stay whole, five filtered lidar scans keep every 2nd to 4th beam.
         Default 25_000.
     """
 

@@ -39,7 +39,14 @@ from numpy.typing import NDArray
 
 from octolgp.config import MapConfig
 from octolgp.geometry import ray_kernel
-from octolgp.geometry.keys import KEY_BITS, pack_keys, return_steps, step_points, unpack_keys
+from octolgp.geometry.keys import (
+    KEY_BITS,
+    KeyRegion,
+    pack_keys,
+    return_steps,
+    step_points,
+    unpack_keys,
+)
 from octolgp.scan import Scan
 from octolgp.training import IntArray, check_scans, config_beams, stack_beams
 
@@ -266,6 +273,7 @@ def _free_codes(
     near: np.ndarray | None = None,
     *,
     compiled: bool | None = None,
+    region: KeyRegion | None = None,
 ) -> tuple[IntArray, IntArray]:
     """Unique (scan, voxel) codes of the voxels the free segments pass through.
 
@@ -298,6 +306,8 @@ def _free_codes(
         Walk the segments with the compiled loop (:mod:`octolgp.geometry.ray_kernel`)
         or compute the crossings with numpy; by default compiled where numba imports.
         Both give the same codes.
+    region : KeyRegion, optional
+        Keep only the voxels in it (dropped as they are walked); all where ``None``.
 
     Returns
     -------
@@ -376,6 +386,9 @@ def _free_codes(
                 near_map if dense else None,
             )
             if not dense:
+                if region is not None:
+                    walked = region.contains(listed)
+                    listed, listed_near = listed[walked], listed_near[walked]
                 if near is not None:
                     near_parts.append(sorted_unique(listed[listed_near]))
                 parts.append(sorted_unique(listed[~listed_near]))
@@ -401,8 +414,14 @@ def _free_codes(
             t_in.append(t)
             owner.append(seg)
         idx = np.concatenate(index)
+        wanted = None if dense or region is None else region.contains(idx)
         if near is not None:
             is_near = np.concatenate(t_in) >= enter_near[np.concatenate(owner)]
+            if wanted is not None:
+                is_near = is_near[wanted]
+        if wanted is not None:
+            idx = idx[wanted]
+        if near is not None:
             if dense:
                 near_map[idx[is_near]] = True
             else:
@@ -416,6 +435,9 @@ def _free_codes(
     if dense:
         cell = np.flatnonzero(far_map | near_map if near is not None else far_map)
         codes = _box_codes(cell, base, box_stride, low, scans, dim)
+        if region is not None:
+            marked = region.contains(codes)
+            cell, codes = cell[marked], codes[marked]
         if near is None:
             return codes, none
         return codes, codes[near_map[cell] & ~far_map[cell]]
@@ -427,7 +449,9 @@ def _free_codes(
     return merge_unique(far, only), only
 
 
-def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
+def observe(
+    scans: Iterable[Scan], config: MapConfig, region: KeyRegion | None = None
+) -> VoxelObservations:
     """Count, per voxel, the scans that saw it occupied and the scans that saw it free.
 
     Parameters
@@ -437,6 +461,9 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
         order.
     config : MapConfig
         Uses ``resolution``, ``tree_depth``, ``free_margin`` and ``clear_scans``.
+    region : KeyRegion, optional
+        Observe only the voxels in it: the result is the whole one's voxels in the
+        region, exactly (every count is per voxel). All voxels where ``None``.
 
     Returns
     -------
@@ -450,7 +477,7 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     scan_list = check_scans(scans, config.dim)
     if len(scan_list) > MAX_SCANS:
         parts = [
-            observe(scan_list[lo : lo + MAX_SCANS], config)
+            observe(scan_list[lo : lo + MAX_SCANS], config, region)
             for lo in range(0, len(scan_list), MAX_SCANS)
         ]
         return merge_observations(parts, config.dim)
@@ -458,13 +485,21 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     origins, ends, max_range = stack_beams(scan_list)
     scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
     beams = config_beams(origins, ends, max_range, config)
-    returns = ends[beams.is_hit]
+    returns, hit_scan = ends[beams.is_hit], scan[beams.is_hit]
     hit_keys = _voxel_keys(returns, res, depth)
+    hit_packed = pack_keys(hit_keys)
+    if region is not None:
+        held = region.contains(hit_packed)
+        returns, hit_scan, hit_keys, hit_packed = (
+            returns[held],
+            hit_scan[held],
+            hit_keys[held],
+            hit_packed[held],
+        )
     # returns at the precision a map file keeps them (a map equals the map read back)
     hit_points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
-    hit_packed = pack_keys(hit_keys)
     # one (scan, voxel) code per return; the first return of each, in beam order
-    all_codes = _scan_codes(hit_packed, scan[beams.is_hit], dim)
+    all_codes = _scan_codes(hit_packed, hit_scan, dim)
     order = np.argsort(all_codes, kind="stable")
     ordered = all_codes[order]
     first_of_code = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
@@ -476,7 +511,7 @@ def observe(scans: Iterable[Scan], config: MapConfig) -> VoxelObservations:
     margin = max(config.clear_margin - config.free_margin, 0.0)  # from the segment's end
     near = np.where(beams.is_hit[seg], margin, np.inf) if k else None
     free_codes, weak_codes = _free_codes(
-        origins[seg], beams.free_end[seg], scan[seg], res, depth, near
+        origins[seg], beams.free_end[seg], scan[seg], res, depth, near, region=region
     )
     free_codes = free_codes[~np.isin(free_codes, hit_codes, assume_unique=True)]
     weak_codes = weak_codes[~np.isin(weak_codes, hit_codes, assume_unique=True)]

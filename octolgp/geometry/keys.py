@@ -15,6 +15,7 @@ with the default depth 16.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -320,3 +321,91 @@ def child_index(keys: ArrayLike, level: int) -> NDArray[np.uint8]:
     weights = (1 << np.arange(k.shape[1], dtype=np.int64))[None, :]
     index: NDArray[np.uint8] = (bits * weights).sum(axis=1).astype(np.uint8)
     return index
+
+
+@dataclass(frozen=True, slots=True)
+class KeyRegion:
+    """A set of voxels held as blocks of ``2**shift`` voxels on an edge.
+
+    Reads that need the observations of a few places only (the learning sets) ask for
+    them in a region, so that the voxels elsewhere are dropped as soon as they are
+    walked instead of being sorted and counted.
+
+    Attributes
+    ----------
+    shift : int
+        A block is ``2**shift`` voxels on an edge; block index = key >> shift.
+    low : ndarray of int64, shape (d,)
+        The lowest block index per axis of ``blocks``.
+    blocks : ndarray of bool, shape (n_x, n_y[, n_z])
+        Which blocks, indexed by block index minus ``low``, belong to the region.
+    """
+
+    shift: int
+    low: IntArray
+    blocks: NDArray[np.bool_]
+
+    @classmethod
+    def around(
+        cls,
+        centres: FloatArray,
+        radii: FloatArray,
+        resolution: float,
+        tree_depth: int,
+        shift: int = 3,
+    ) -> KeyRegion:
+        """The blocks that meet the balls ``|x - centre| <= radius`` (a superset of them).
+
+        Parameters
+        ----------
+        centres : ndarray of shape (k, d)
+            Ball centres, metres (addressable).
+        radii : ndarray of shape (k,)
+            Ball radii, metres, non-negative.
+        resolution : float
+            Voxel edge, metres.
+        tree_depth : int
+        shift : int
+            Blocks of ``2**shift`` voxels on an edge.
+        """
+        c = np.asarray(centres, dtype=np.float64)
+        r = np.asarray(radii, dtype=np.float64)
+        dim = c.shape[1]
+        edge = resolution * (1 << shift)  # a block's edge, metres
+        offset = (1 << (tree_depth - 1)) >> shift  # the block index of coordinate 0
+        lo = np.floor((c - r[:, None]) / edge).astype(np.int64) + offset
+        hi = np.floor((c + r[:, None]) / edge).astype(np.int64) + offset
+        low = lo.min(axis=0) if c.size else np.zeros(dim, np.int64)
+        extent = (hi.max(axis=0) - low + 1) if c.size else np.zeros(dim, np.int64)
+        blocks = np.zeros(tuple(int(e) for e in extent), dtype=bool)
+        grids = np.indices(blocks.shape).reshape(dim, -1).T + low  # (cells, d) block indices
+        corner = (grids - offset) * edge  # each block's lower corner, metres
+        for centre, radius in zip(c, r, strict=True):  # one pass per ball, a few
+            nearest = np.clip(centre, corner, corner + edge)  # the block's point nearest it
+            inside = np.sum((nearest - centre) ** 2, axis=1) <= radius**2
+            blocks.reshape(-1)[inside] = True
+        return cls(shift, low, blocks)
+
+    def contains(self, packed: IntArray) -> NDArray[np.bool_]:
+        """Whether each packed key's voxel lies in the region.
+
+        Parameters
+        ----------
+        packed : ndarray of int64, shape (n,)
+            Packed keys (:func:`pack_keys`) of ``d`` axes; higher bits are ignored.
+
+        Returns
+        -------
+        ndarray of bool, shape (n,)
+        """
+        flat = np.zeros(packed.shape, dtype=np.int64)
+        inside = np.ones(packed.shape, dtype=bool)
+        for axis, size in enumerate(self.blocks.shape):  # at most 3 axes, C order
+            block = ((packed >> (KEY_BITS * axis)) & _KEY_MASK) >> self.shift
+            block -= self.low[axis]
+            inside &= (block >= 0) & (block < size)
+            flat *= size
+            flat += block
+        where = np.flatnonzero(inside)
+        inside[where] = self.blocks.reshape(-1)[flat[where]]
+        return inside

@@ -12,8 +12,10 @@ models (``LearningConfig.model``):
   point observation, a voxel seen occupied at its kept return (target +1, noise
   ``σn² / h`` for ``h`` counted returns), one seen free at its centre (target −1, noise
   ``σn² / (free_weight f)`` for ``f`` counted free looks); each set is the nearest
-  occupied voxels around a seed and the free voxels within the same radius. Point
-  kernels only: a set of ``n`` items is an ``(n, n)`` matrix.
+  occupied voxels around a seed and the free voxels within the same radius, and the
+  scans are observed only in balls around the seeds (most of a long beam's voxels
+  are far from every seed). Point kernels only: a set of ``n`` items is an
+  ``(n, n)`` matrix.
 - *segments* (the exact engine's and the batch map's): hits and free segments with the
   integral kernels of :mod:`octolgp.gp.kernels`, on clusters of
   :func:`octolgp.partition.partition`. The node layout is fixed during the
@@ -33,7 +35,7 @@ from threadpoolctl import threadpool_limits
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import key_to_coord
+from octolgp.geometry.keys import KeyRegion, coord_to_key, key_to_coord, pack_keys, unpack_keys
 from octolgp.gp.kernels import BlockWorkspace
 from octolgp.gp.likelihood import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.gp.plsc import fit_plsc
@@ -42,7 +44,16 @@ from octolgp.memory import release_free_memory
 from octolgp.observations import advance, effective_counts, observe
 from octolgp.partition import Cluster, partition
 from octolgp.scan import FloatArray, Scan
-from octolgp.training import TrainingData, make_training_data
+from octolgp.training import (
+    TrainingData,
+    check_scans,
+    config_beams,
+    make_training_data,
+    stack_beams,
+)
+
+REGION_TRIES = 4
+"""Times the learning region is grown before the scans are observed whole."""
 
 MIN_NOISE_VARIANCE = 1e-2
 """Lower bound of the learnt noise variance ``σn²`` (targets are ±1): on real logs the
@@ -267,9 +278,9 @@ def refine_by_loo(
 
 
 def voxel_observations(
-    scans: Iterable[Scan], config: MapConfig
+    scans: Iterable[Scan], config: MapConfig, region: KeyRegion | None = None
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Every voxel the scans observe, as the lattice engine sees it after them.
+    """Every voxel the scans observe (in ``region``), as the lattice engine sees it after them.
 
     The counts are those a map's leaves hold after the scans
     (:func:`octolgp.observations.advance` from nothing, then
@@ -278,6 +289,8 @@ def voxel_observations(
     centre, weighing ``lattice.free_weight`` times its free count. Where later free looks
     forgot every return (a world that changed while the scans were taken), the voxels
     with returns count as occupied anyway, so that there is something to learn from.
+    With a ``region`` (:func:`octolgp.observations.observe`'s) only its voxels are
+    observed, each as in the whole result.
 
     Returns
     -------
@@ -288,7 +301,7 @@ def voxel_observations(
     weights : ndarray of shape (n,)
         ``w`` of the observation noise ``σn² / w``.
     """
-    obs = observe(scans, config)
+    obs = observe(scans, config, region)
     cap = config.lattice.evidence_cap
     zero = np.zeros(obs.n_voxels, dtype=np.int64)
     state = advance(zero, zero, obs, np.arange(obs.n_voxels), cap)
@@ -315,9 +328,7 @@ def voxel_learning_sets(
     """Up to ``learning.max_clusters`` sets of voxel observations spread over the map.
 
     Seeds are occupied voxels evenly spaced in their order along the axis of largest
-    extent. A set holds the ``max_items_per_cluster // 2`` occupied voxels nearest its
-    seed and the free voxels within the distance of the farthest of them, randomly
-    thinned (``learning.seed``) to fill ``max_items_per_cluster`` items.
+    extent (:func:`spread_seeds`); each set is :func:`sets_around` its seed.
 
     Parameters
     ----------
@@ -330,26 +341,130 @@ def voxel_learning_sets(
     list of LearningSet
         Point items, noise scales ``1 / w``.
     """
+    seeds = spread_seeds(points[y > 0], config.learning.max_clusters)
+    return sets_around(points, y, weights, seeds, config)[0]
+
+
+def spread_seeds(hit_points: FloatArray, count: int) -> FloatArray:
+    """Up to ``count`` of ``hit_points`` evenly spaced in their order along the widest axis.
+
+    Parameters
+    ----------
+    hit_points : ndarray of shape (n, d)
+        Metres, at least one.
+    count : int
+
+    Returns
+    -------
+    ndarray of shape (k, d)
+        Distinct picks, ``k <= count``.
+    """
+    axis = int(np.argmax(np.ptp(hit_points, axis=0)))
+    order = np.argsort(hit_points[:, axis], kind="stable")
+    k = min(count, hit_points.shape[0])
+    picks = np.unique(order[np.linspace(0, hit_points.shape[0] - 1, k).round().astype(int)])
+    seeds: FloatArray = hit_points[picks]
+    return seeds
+
+
+def sets_around(
+    points: FloatArray, y: FloatArray, weights: FloatArray, seeds: FloatArray, config: MapConfig
+) -> tuple[list[LearningSet], FloatArray]:
+    """One learning set per seed: its nearest occupied voxels and the free ones around.
+
+    A set holds the ``max_items_per_cluster // 2`` occupied voxels nearest its seed and
+    the free voxels within the distance of the farthest of them, randomly thinned
+    (``learning.seed``) to fill ``max_items_per_cluster`` items.
+
+    Parameters
+    ----------
+    points, y, weights : ndarray of shape (n, d), (n,), (n,)
+        As returned by :func:`voxel_observations`, with at least one occupied voxel.
+    seeds : ndarray of shape (k, d)
+        Metres.
+    config : MapConfig
+
+    Returns
+    -------
+    sets : list of LearningSet
+        Point items, noise scales ``1 / w``.
+    radius : ndarray of shape (k,)
+        Each set's radius, metres: the distance of its farthest occupied voxel.
+    """
     lc = config.learning
     rng = np.random.default_rng(lc.seed)
     occupied, free = np.flatnonzero(y > 0), np.flatnonzero(y < 0)
     hit_points, free_points = points[occupied], points[free]
     cap = lc.max_items_per_cluster
     n_near = min(cap // 2, occupied.size)
-    axis = int(np.argmax(np.ptp(hit_points, axis=0)))
-    order = np.argsort(hit_points[:, axis], kind="stable")
-    k = min(lc.max_clusters, occupied.size)
-    seeds = np.unique(order[np.linspace(0, occupied.size - 1, k).round().astype(int)])
-    sets = []
-    for seed in hit_points[seeds]:  # one iteration per set, a few
+    sets, radius = [], np.zeros(seeds.shape[0])
+    for i, seed in enumerate(seeds):  # one iteration per set, a few
         d2 = np.sum((hit_points - seed) ** 2, axis=1)
         near = np.argsort(d2, kind="stable")[:n_near]
+        radius[i] = np.sqrt(d2[near[-1]])
         inside = np.flatnonzero(np.sum((free_points - seed) ** 2, axis=1) <= d2[near[-1]])
         if inside.size > cap - n_near:
             inside = np.sort(rng.choice(inside, size=cap - n_near, replace=False))
         idx = np.concatenate([occupied[near], free[inside]])
         sets.append(LearningSet(points_set(points[idx]), y[idx], 1.0 / weights[idx]))
-    return sets
+    return sets, radius
+
+
+def return_voxels(scans: list[Scan], config: MapConfig) -> FloatArray:
+    """The centres of the voxels holding a return of the scans, in packed-key order.
+
+    Returns
+    -------
+    ndarray of shape (n, d)
+        Metres, world frame; the returns are those of the map's sensor model
+        (:func:`octolgp.training.config_beams`).
+    """
+    res, depth = config.resolution, config.tree_depth
+    origins, ends, max_range = stack_beams(check_scans(scans, config.dim))
+    beams = config_beams(origins, ends, max_range, config)
+    packed = np.unique(pack_keys(coord_to_key(ends[beams.is_hit], res, depth)))
+    return key_to_coord(unpack_keys(packed, config.dim), res, depth)
+
+
+def learning_voxel_sets(scans: list[Scan], config: MapConfig) -> list[LearningSet]:
+    """The voxel learning sets of scans, observing only the voxels near their seeds.
+
+    Seeds are :func:`spread_seeds` of :func:`return_voxels`.
+    The scans are observed in a region (:class:`~octolgp.geometry.keys.KeyRegion`) of
+    balls around the seeds, grown until each set's radius fits in its ball, so the
+    sets are those :func:`sets_around` the same seeds gives on every observed voxel,
+    while the voxels far from every seed (most of a long beam's) are dropped as they
+    are walked instead of counted.
+
+    Raises
+    ------
+    OctolgpError
+        On scans that observe no voxel or hold no return.
+    """
+    res, depth, dim = config.resolution, config.tree_depth, config.dim
+    centres = return_voxels(scans, config)
+    if centres.shape[0] == 0:
+        _, y, _ = voxel_observations(scans, config)
+        raise _no_return() if y.size else _no_data()
+    seeds = spread_seeds(centres, config.learning.max_clusters)
+    n_near = min(config.learning.max_items_per_cluster // 2, centres.shape[0])
+    d2 = np.sum((centres[None, :, :] - seeds[:, None, :]) ** 2, axis=2)  # (k, voxels)
+    reach = np.sqrt(np.partition(d2, n_near - 1, axis=1)[:, n_near - 1])
+    slack = 0.5 * res * np.sqrt(dim)  # a kept return lies within this of its voxel's centre
+    ball = reach + 2 * slack
+    for _ in range(REGION_TRIES):  # grown while a set may reach past its ball
+        region = KeyRegion.around(seeds, ball, res, depth)
+        points, y, weights = voxel_observations(scans, config, region)
+        if np.any(y > 0):
+            sets, radius = sets_around(points, y, weights, seeds, config)
+            short = radius > ball - slack
+            if not np.any(short):
+                return sets
+            ball = np.where(short, 2.0 * ball, ball)
+        else:
+            ball = 2.0 * ball
+    points, y, weights = voxel_observations(scans, config)
+    return sets_around(points, y, weights, seeds, config)[0]
 
 
 def thinned(scans: list[Scan], max_beams: int | None) -> list[Scan]:
@@ -375,12 +490,7 @@ def learn_from_voxels(scans: Iterable[Scan], config: MapConfig) -> Hyperparamete
     OctolgpError
         On scans that observe no voxel or hold no return.
     """
-    points, y, weights = voxel_observations(thinned(list(scans), config.learning.max_beams), config)
-    if y.size == 0:
-        raise _no_data()
-    if not np.any(y > 0):
-        raise _no_return()
-    sets = voxel_learning_sets(points, y, weights, config)
+    sets = learning_voxel_sets(thinned(list(scans), config.learning.max_beams), config)
     work = BlockWorkspace()
     initial = Hyperparameters(length_scale=10.0 * config.resolution)
     # one start: from a third and three times the initial length scale the optimum is
