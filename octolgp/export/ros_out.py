@@ -11,7 +11,8 @@ each message's content is built and tested without it.
 - ``map_msgs/OccupancyGridUpdate``: :func:`grid_updates` gives rectangles covering every
   cell that changed between two grids of one geometry (``None`` when the geometry changed
   and only a full grid will do); :func:`apply_updates` applies them as nav2's static layer
-  does, giving the new grid exactly.
+  does, giving the new grid exactly. :class:`GridSync` decides, publish by publish, between
+  a full grid and updates.
 - ``octomap_msgs/Octomap``: :func:`octomap_binary` is the tree stream ``octomap_server``
   publishes (``binary`` true, ``id`` ``OcTree``): the bytes after the header of a ``.bt``
   file (:func:`octolgp.export.octomap.bt_data`).
@@ -42,6 +43,7 @@ from octolgp.geometry.keys import coord_to_key
 __all__ = [
     "CubeList",
     "GridMessage",
+    "GridSync",
     "GridUpdate",
     "OctomapMessage",
     "apply_updates",
@@ -377,6 +379,61 @@ def apply_updates(grid: TrinaryGrid, updates: Iterable[GridUpdate]) -> TrinaryGr
             )
         data[u.y : u.y + u.height, u.x : u.x + u.width] = np.reshape(u.data, (u.height, u.width))
     return TrinaryGrid(data, grid.origin, grid.resolution)
+
+
+class GridSync:
+    """What to send on a grid topic so its subscribers hold the newest grid.
+
+    A full grid goes out first, whenever the grid's size, origin or resolution changes, and
+    every ``full_period`` seconds (for subscribers that missed updates); in between, the
+    :func:`grid_updates` from the grid subscribers hold.
+
+    Parameters
+    ----------
+    tile, max_updates : int, optional
+        As :func:`grid_updates`.
+    full_period : float, optional
+        Seconds between full grids, ``>= 0`` (0: every grid in full).
+
+    Raises
+    ------
+    OctolgpError
+        On a bad ``tile``, ``max_updates`` or ``full_period``.
+    """
+
+    def __init__(self, *, tile: int = 32, max_updates: int = 16, full_period: float = 10.0):
+        self.tile = _positive_int(tile, "tile")
+        self.max_updates = _positive_int(max_updates, "max_updates")
+        ok = isinstance(full_period, int | float) and not isinstance(full_period, bool)
+        if not ok or math.isnan(full_period) or full_period < 0:
+            raise OctolgpError(f"full_period must be a number >= 0 seconds, got {full_period!r}")
+        self.full_period = float(full_period)
+        self.sent: TrinaryGrid | None = None  # what subscribers hold
+        self._full_at = -math.inf
+
+    def next(self, grid: TrinaryGrid, now: float) -> GridMessage | list[GridUpdate]:
+        """The message(s) that bring subscribers from the last grid sent to ``grid``.
+
+        Parameters
+        ----------
+        grid : TrinaryGrid
+            The grid now (:func:`map_grid`).
+        now : float
+            Seconds on a monotonic clock.
+
+        Returns
+        -------
+        GridMessage or list of GridUpdate
+            A full grid, or the updates (empty when nothing changed).
+        """
+        changes = None
+        if now - self._full_at < self.full_period:
+            changes = grid_updates(self.sent, grid, tile=self.tile, max_updates=self.max_updates)
+        self.sent = grid  # the old grid with the updates applied, cell for cell
+        if changes is None:
+            self._full_at = now
+            return grid_message(grid)
+        return changes
 
 
 # ------------------------------------------------------------------ Octomap

@@ -68,9 +68,9 @@ from octolgp import MapConfig, OctolgpError, OnlineMap, Scan
 from octolgp.export.nav2 import TrinaryGrid, write_nav2_map
 from octolgp.export.octomap import write_bt
 from octolgp.export.ros_out import (
+    GridMessage,
+    GridSync,
     clip_z_range,
-    grid_message,
-    grid_updates,
     map_grid,
     occupied_cubes,
     octomap_binary,
@@ -114,45 +114,41 @@ def _latched(depth: int = 1) -> QoSProfile:
 
 
 class GridTopic:
-    """A trinary grid on ``NAME`` with its changed tiles on ``NAME_updates``."""
+    """A trinary grid on ``NAME`` (latched) with its changed tiles on ``NAME_updates``."""
 
     def __init__(self, node: OctolgpMapper, name: str) -> None:
         self.node = node
         self.full = node.create_publisher(OccupancyGrid, name, _latched())
         depth = max(10, node.max_updates)
         self.updates = node.create_publisher(OccupancyGridUpdate, f"{name}_updates", depth)
-        self.sent: TrinaryGrid | None = None  # what subscribers hold
-        self.sent_at = -math.inf
+        self.sync = GridSync(
+            tile=node.tile, max_updates=node.max_updates, full_period=node.full_publish_period
+        )
 
     def publish(self, grid: TrinaryGrid, stamp: Any) -> str:
         """Publish ``grid`` in full or as updates to the last one sent; say which."""
-        node = self.node
-        now = time.monotonic()
-        due = now - self.sent_at >= node.full_publish_period
-        changes = None if due else grid_updates(self.sent, grid, tile=node.tile)
-        if changes is None:
-            g = grid_message(grid)
+        frame = self.node.frame_id
+        out = self.sync.next(grid, time.monotonic())
+        if isinstance(out, GridMessage):
             msg = OccupancyGrid()
             msg.header.stamp = stamp
-            msg.header.frame_id = node.frame_id
+            msg.header.frame_id = frame
             msg.info.map_load_time = stamp
-            msg.info.resolution = g.resolution
-            msg.info.width, msg.info.height = g.width, g.height
-            msg.info.origin.position.x, msg.info.origin.position.y = g.origin
+            msg.info.resolution = out.resolution
+            msg.info.width, msg.info.height = out.width, out.height
+            msg.info.origin.position.x, msg.info.origin.position.y = out.origin
             msg.info.origin.orientation.w = 1.0
-            msg.data = array.array("b", g.data.tobytes())
+            msg.data = array.array("b", out.data.tobytes())
             self.full.publish(msg)
-            self.sent, self.sent_at = grid, now
-            return f"full {g.width} x {g.height}"
-        for u in changes:
+            return f"full {out.width} x {out.height}"
+        for u in out:
             up = OccupancyGridUpdate()
             up.header.stamp = stamp
-            up.header.frame_id = node.frame_id
+            up.header.frame_id = frame
             up.x, up.y, up.width, up.height = u.x, u.y, u.width, u.height
             up.data = array.array("b", u.data.tobytes())
             self.updates.publish(up)
-        self.sent = grid  # the old grid with the updates applied, cell for cell
-        return f"{len(changes)} update(s), {sum(u.data.size for u in changes)} cells"
+        return f"{len(out)} update(s), {sum(u.data.size for u in out)} cells"
 
 
 class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS installed
