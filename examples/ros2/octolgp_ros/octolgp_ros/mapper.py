@@ -307,15 +307,22 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
     # --- output ---------------------------------------------------------------------------
 
     def publish_all(self) -> None:
-        """Publish the map's messages if scans went in since the last time."""
+        """Publish the map's messages if scans went in since the last time.
+
+        Nothing is published while the map buffers its first scans to learn its
+        hyperparameters (``online.learn_scans``): a read then fits every buffered scan
+        into a map that is thrown away, holding the inserts for seconds.
+        """
         if self.last_stamp is None or self.inserted == self.published:
+            return
+        if self.map.provisional:  # a throw-away fit of every buffered scan: not worth a stall
             return
         self.published = self.inserted
         t0 = time.perf_counter()
         centres, prob = self.map.voxels()  # the only part that holds the map (and its inserts)
         held = time.perf_counter() - t0
         if centres.shape[0] == 0:
-            return  # still buffering the first scans to learn hyperparameters on
+            return
         stamp = self.last_stamp
         thresholds = {"occupied_thresh": self.occupied_thresh, "free_thresh": self.free_thresh}
         try:
