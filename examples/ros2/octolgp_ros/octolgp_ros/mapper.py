@@ -34,6 +34,7 @@ from __future__ import annotations
 import array
 import dataclasses
 import math
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -179,6 +180,8 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
         self.inserted = 0  # scans inserted by this node
         self.published = -1  # value of ``inserted`` at the last publish
         self.skipped = 0
+        # an insert and its stamp, or the voxels and the stamp they go out with, as one
+        self.stamp_lock = threading.Lock()
 
         # scans and tf polling take turns in one group; publishing and saving in another
         inserts = MutuallyExclusiveCallbackGroup()
@@ -287,12 +290,13 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
                     scan = scan.downsample(self.downsample)
             else:  # posed in the plane (x, y, yaw)
                 scan = Scan.from_laserscan(msg, (T[0, 3], T[1, 3], math.atan2(T[1, 0], T[0, 0])))
-            update = self.map.insert_scan(scan)
+            with self.stamp_lock:
+                update = self.map.insert_scan(scan)
+                self.last_stamp = msg.header.stamp
+                self.inserted += 1
         except (OctolgpError, TransformException) as exc:
             self.skip(str(exc))
             return
-        self.last_stamp = msg.header.stamp
-        self.inserted += 1
         self.get_logger().debug(
             f"scan {update.scan}: {update.refit_leaves} leaves refitted in {update.seconds:.3f} s"
         )
@@ -317,13 +321,13 @@ class OctolgpMapper(Node):  # type: ignore[misc]  # rclpy is untyped without ROS
             return
         if self.map.provisional:  # a throw-away fit of every buffered scan: not worth a stall
             return
-        self.published = self.inserted
         t0 = time.perf_counter()
-        centres, prob = self.map.voxels()  # the only part that holds the map (and its inserts)
+        with self.stamp_lock:  # the only part that holds the map (and its inserts)
+            centres, prob = self.map.voxels()
+            stamp, self.published = self.last_stamp, self.inserted
         held = time.perf_counter() - t0
         if centres.shape[0] == 0:
             return
-        stamp = self.last_stamp
         thresholds = {"occupied_thresh": self.occupied_thresh, "free_thresh": self.free_thresh}
         try:
             grid = map_grid(
@@ -411,6 +415,7 @@ def main(args: list[str] | None = None) -> None:
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        executor.shutdown()
         node.close()
         node.destroy_node()
         rclpy.try_shutdown()
