@@ -9,17 +9,18 @@ Arguments (``ros2 launch octolgp_ros octolgp.launch.py name:=value``):
 """
 
 from pathlib import Path
+from typing import Any
 
 from ament_index_python.packages import get_package_share_directory
-from launch import LaunchDescription
+from launch import LaunchContext, LaunchDescription
 from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 
-def _mapper(context, *args, **kwargs):  # type: ignore[no-untyped-def]  # launch's signature
+def _mapper(context: LaunchContext, *args: Any, **kwargs: Any) -> list[Node]:
     """The node, with ``map_file`` overriding the parameter file only when it is given."""
-    overrides = {
+    overrides: dict[str, Any] = {
         "use_sim_time": LaunchConfiguration("use_sim_time").perform(context) == "true",
     }
     map_file = LaunchConfiguration("map_file").perform(context)
