@@ -467,3 +467,32 @@ def test_3d_map_publishes_octomap_markers_and_projection(mapper: Any, tmp_path: 
     assert "map" not in node.publishers
     assert node.services["save"](Msg(), Msg()).success
     node.close()
+
+
+def test_main_spins_until_ctrl_c_and_closes_the_map(
+    mapper: Any, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    calls: list[str] = []
+
+    class Executor:
+        def __init__(self, num_threads: int) -> None:
+            calls.append(f"threads {num_threads}")
+
+        def add_node(self, node: Any) -> None:
+            self.node = node
+
+        def spin(self) -> None:
+            raise KeyboardInterrupt
+
+        def shutdown(self) -> None:
+            calls.append("shutdown")
+
+    monkeypatch.setattr(mapper, "MultiThreadedExecutor", Executor)
+    config = tmp_path / "config.toml"
+    config.write_text(MapConfig(dim=2, resolution=0.1, hyperparameters=HP2).to_toml())
+    Node.overrides = {"map_file": str(tmp_path / "m.octolgp"), "config": str(config)}
+    mapper.main([])
+    assert calls == ["threads 2", "shutdown"]
+    # the map file was closed: another writer can open it
+    with OnlineMap.open(tmp_path / "m.octolgp") as m:
+        assert m.n_scans == 0
