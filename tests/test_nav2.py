@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -180,6 +181,23 @@ def test_3d_slice_and_projection() -> None:
     np.testing.assert_array_equal(column, [FREE, FREE])
     xy, layer = project_cells(centres, states, res, z=1.2)
     np.testing.assert_array_equal(layer, [OCCUPIED, FREE, UNKNOWN, UNKNOWN])
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e15])
+def test_projection_merges_columns_as_a_brute_force_merge(scale: float) -> None:
+    """Columns merged by packed keys (or, at huge coordinates, row by row) as a dict does."""
+    rng = np.random.default_rng(7)
+    centres = np.c_[rng.integers(-6, 6, (400, 2)) * scale + 0.5, rng.uniform(0, 3, 400)]
+    states = rng.choice(np.array([UNKNOWN, FREE, OCCUPIED], dtype=np.int8), 400)
+    xy, column = project_cells(centres, states, 1.0, z_range=(0.0, 3.0))
+    best: dict[tuple[float, float], int] = {}
+    rank = {UNKNOWN: 0, FREE: 1, OCCUPIED: 2}
+    for (x, y, _), state in zip(centres.tolist(), states.tolist(), strict=True):
+        key = (math.floor(x) + 0.5, math.floor(y) + 0.5)
+        best[key] = max(best.get(key, 0), rank[state])
+    expected = sorted(best)  # x, then y: the order of the output
+    np.testing.assert_array_equal(xy, expected)
+    np.testing.assert_array_equal(column, [[UNKNOWN, FREE, OCCUPIED][best[k]] for k in expected])
 
 
 @pytest.mark.parametrize("kind", ["z", "z_range"])

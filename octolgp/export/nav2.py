@@ -120,7 +120,15 @@ def _merge(cells: NDArray[np.int64], states: Int8Array) -> tuple[NDArray[np.int6
     """One state per distinct cell index ``(k, 2)``: occupied if any is, else free if any is."""
     if not cells.shape[0]:
         return cells, states
-    unique, inverse = np.unique(cells, axis=0, return_inverse=True)
+    low = cells.min(axis=0)
+    span = cells.max(axis=0) - low + 1
+    if int(span[0]) * int(span[1]) < 2**62:  # packed into int64: a 1D unique, same order
+        packed, inverse = np.unique(
+            (cells[:, 0] - low[0]) * span[1] + (cells[:, 1] - low[1]), return_inverse=True
+        )
+        unique = np.column_stack([packed // span[1], packed % span[1]]) + low
+    else:
+        unique, inverse = np.unique(cells, axis=0, return_inverse=True)
     best = np.zeros(unique.shape[0], dtype=np.int64)
     np.maximum.at(best, inverse.ravel(), _rank(states))
     merged = np.choose(best, [UNKNOWN, FREE, OCCUPIED]).astype(np.int8)

@@ -73,6 +73,47 @@ def _check_tree_args(resolution: float, tree_depth: int) -> None:
     addressable_range(resolution, tree_depth)  # raises on a bad resolution or depth
 
 
+def bt_data(
+    keys: ArrayLike,
+    occupied: ArrayLike,
+    resolution: float,
+    tree_depth: int = 16,
+) -> tuple[bytes, int]:
+    """The node stream of a ``.bt`` file: OctoMap's ``writeBinaryData``, without the header.
+
+    This is what follows ``data`` in a ``.bt`` file and what ``octomap_msgs/Octomap``
+    carries in ``data`` when ``binary`` is true (``octomap_msgs::binaryMapToMsg``).
+
+    Parameters
+    ----------
+    keys, occupied, resolution, tree_depth
+        As :func:`write_bt`.
+
+    Returns
+    -------
+    data : bytes
+        Two bytes per inner node, depth first (empty for no voxels).
+    size : int
+        Nodes in the tree, root and inner nodes included (0 for no voxels).
+
+    Raises
+    ------
+    OctolgpError
+        On bad or duplicate ``keys``, a bad ``occupied``, ``resolution`` or ``tree_depth``.
+    """
+    _check_tree_args(resolution, tree_depth)
+    keys16 = to_keys16(keys, tree_depth)
+    occ = _as_occupied(occupied, keys16.shape[0])
+    if keys16.shape[0] == 0:
+        return b"", 0
+    levels = build_tree(keys16, np.where(occ, 1.0, -1.0).astype(np.float32))
+    order = depth_first(levels, inner_only=True)
+    states = np.concatenate([level.states[level.inner] for level in levels])[order]
+    size = sum(level.code.size for level in levels)
+    # Low byte child1to4, high byte child5to8: little-endian uint16.
+    return states.astype("<u2").tobytes(), int(size)
+
+
 def write_bt(
     path: PathLike,
     keys: ArrayLike,
@@ -114,18 +155,8 @@ def write_bt(
         On bad or duplicate ``keys``, a bad ``occupied``, ``resolution`` or
         ``tree_depth``, or a ``path`` that cannot be written.
     """
-    _check_tree_args(resolution, tree_depth)
-    keys16 = to_keys16(keys, tree_depth)
-    occ = _as_occupied(occupied, keys16.shape[0])
-    if keys16.shape[0] == 0:
-        write_bytes(path, [_header(BT_HEADER, 0, resolution)])
-        return 0
-    levels = build_tree(keys16, np.where(occ, 1.0, -1.0).astype(np.float32))
-    order = depth_first(levels, inner_only=True)
-    states = np.concatenate([level.states[level.inner] for level in levels])[order]
-    size = sum(level.code.size for level in levels)
-    # Low byte child1to4, high byte child5to8: little-endian uint16.
-    write_bytes(path, [_header(BT_HEADER, size, resolution), states.astype("<u2").tobytes()])
+    data, size = bt_data(keys, occupied, resolution, tree_depth)
+    write_bytes(path, [_header(BT_HEADER, size, resolution), data])
     return size
 
 
