@@ -7,10 +7,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from octolgp import Hyperparameters, MapConfig, OnlineMap, load_scans
+from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
 from octolgp.cli.main import main
+from octolgp.export.octomap import write_bt, write_map_voxels, write_ot, write_tree_chunks
+from octolgp.export.octree import morton, to_keys16
 from octolgp.export.pcd import write_pcd, write_pcd_chunks
 from octolgp.export.ply import write_ply, write_ply_chunks
+from octolgp.sim.lidar3d import simulate_lidar_room
 
 INTEL20 = Path(__file__).resolve().parent / "data" / "intel_first20.log"
 HP = Hyperparameters(length_scale=0.5, signal_variance=1.0, noise_variance=0.04, alpha=5.0)
@@ -64,3 +67,70 @@ def test_cli_export_streams_the_occupied_voxels(mapped: Path, tmp_path: Path) ->
         p for p in tmp_path.iterdir() if p.name not in {"m.ply", "m.pcd", "want.ply", "want.pcd"}
     ]
     assert not leftovers  # the records' temporary file is gone
+
+
+def _random_voxels(rng: np.random.Generator, dim: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unique keys near the tree's centre, and a 16-voxel block of one state (pruned)."""
+    span = int(rng.integers(2, 40))
+    keys = rng.integers(32768 - span, 32768 + span, (int(rng.integers(1, 2500)), dim))
+    axes = [np.arange(32768, 32768 + 16)] * dim
+    block = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, dim)
+    keys = np.unique(np.concatenate([keys, block]), axis=0)
+    occupied = rng.random(keys.shape[0]) < 0.3
+    occupied[np.all((keys >= 32768) & (keys < 32768 + 16), axis=1)] = True
+    return keys, occupied
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_octomap_trees_from_chunks_equal_the_whole_ones(tmp_path: Path, seed: int) -> None:
+    """Subtrees below a split depth serialised chunk by chunk, in any chunk order, give
+    the bytes of the tree built at once, including siblings pruned across chunks."""
+    rng = np.random.default_rng(seed)
+    dim = 2 + seed % 2
+    keys, occupied = _random_voxels(rng, dim)
+    log_odds = np.where(occupied, 2.0, rng.normal(size=occupied.size))
+    log_odds[np.all((keys >= 32768) & (keys < 32776), axis=1)] = -1.5  # one value: pruned
+    split = int(rng.integers(1, 17))
+    code = morton(to_keys16(keys, 16)) >> (3 * (16 - split))  # each voxel's subtree
+    subtrees, which = np.unique(code, return_inverse=True)
+    chunk = rng.permutation(subtrees.size)[which] % int(rng.integers(1, 7))
+    order = rng.permutation(np.unique(chunk))
+    for full, whole, values in ((False, write_bt, occupied), (True, write_ot, log_odds)):
+        a, b = tmp_path / f"a{full}", tmp_path / f"b{full}"
+        n = whole(a, keys, values, 0.1)
+        parts = [(keys[chunk == c], values[chunk == c]) for c in order]
+        assert write_tree_chunks(b, parts, 0.1, 16, split, full=full) == n
+        assert a.read_bytes() == b.read_bytes()
+
+
+def test_octomap_trees_from_chunks_refuse_a_split_subtree(tmp_path: Path) -> None:
+    keys = np.array([[32768, 32768, 32768], [32769, 32768, 32768]])
+    parts = [(keys[:1], np.array([True])), (keys[1:], np.array([False]))]
+    with pytest.raises(OctolgpError, match="whole subtrees of depth 15"):
+        write_tree_chunks(tmp_path / "m.bt", parts, 0.1, 16, 15, full=False)
+    with pytest.raises(OctolgpError, match="split must be"):
+        write_tree_chunks(tmp_path / "m.bt", parts, 0.1, 16, 0, full=False)
+    assert not (tmp_path / "m.bt").exists()
+    assert write_tree_chunks(tmp_path / "e.bt", [], 0.1, 16, 13, full=False) == 0
+    write_bt(tmp_path / "w.bt", np.zeros((0, 3), np.int64), np.zeros(0, bool), 0.1)
+    assert (tmp_path / "e.bt").read_bytes() == (tmp_path / "w.bt").read_bytes()
+
+
+@pytest.mark.parametrize("suffix", [".bt", ".ot"])
+def test_maps_export_octomap_in_chunks_as_from_whole_arrays(
+    mapped: Path, tmp_path: Path, suffix: str
+) -> None:
+    room = simulate_lidar_room(3, seed=1, n_azimuth=128, n_elevation=8, max_range=10.0)
+    hp = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+    with OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=hp)) as m3:
+        m3.insert_scans([s.downsample(0.2) for s in room.scans()])
+        maps = [(m3, 3)]
+        with OnlineMap.open(mapped, read_only=True) as m2:
+            maps.append((m2, 2))
+            for m, dim in maps:
+                out, ref = tmp_path / f"m{dim}{suffix}", tmp_path / f"r{dim}{suffix}"
+                centres, prob = m.voxels()
+                res, depth = m.config.resolution, m.config.tree_depth
+                n = write_map_voxels(ref, centres, prob, res, depth, 0.4)
+                assert m.export_octomap(out, threshold=0.4) == n > 0
+                assert out.read_bytes() == ref.read_bytes()
