@@ -9,6 +9,8 @@ import pytest
 
 from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap, load_scans
 from octolgp.cli.main import main
+from octolgp.cli.maps import median_height
+from octolgp.export.nav2 import trinary_grid, trinary_grid_chunks, write_nav2_map
 from octolgp.export.octomap import write_bt, write_map_voxels, write_ot, write_tree_chunks
 from octolgp.export.octree import morton, to_keys16
 from octolgp.export.pcd import write_pcd, write_pcd_chunks
@@ -134,3 +136,53 @@ def test_maps_export_octomap_in_chunks_as_from_whole_arrays(
                 n = write_map_voxels(ref, centres, prob, res, depth, 0.4)
                 assert m.export_octomap(out, threshold=0.4) == n > 0
                 assert out.read_bytes() == ref.read_bytes()
+
+
+@pytest.mark.parametrize(
+    ("dim", "z", "z_range"), [(2, None, None), (3, 0.3, None), (3, None, (0.0, 1.0))]
+)
+def test_nav2_grids_from_chunks_equal_the_whole_ones(
+    dim: int, z: float | None, z_range: tuple[float, float] | None
+) -> None:
+    rng = np.random.default_rng(dim)
+    centres = (np.floor(rng.uniform(-3, 3, (5000, dim)) / 0.1) + 0.5) * 0.1
+    centres = np.unique(centres, axis=0)
+    prob = rng.choice([0.1, 0.5, 0.4, 0.9], centres.shape[0])
+    whole = trinary_grid(centres, prob, 0.1, z=z, z_range=z_range)
+    cut = np.sort(rng.choice(centres.shape[0], 6, replace=False))
+    chunks = list(zip(np.split(centres, cut), np.split(prob, cut), strict=True))
+    chunks.append((np.zeros((0, dim)), np.zeros(0)))  # a chunk without voxels
+    parts = trinary_grid_chunks(chunks[::-1], 0.1, z=z, z_range=z_range)
+    np.testing.assert_array_equal(parts.data, whole.data)
+    assert (parts.origin, parts.resolution) == (whole.origin, whole.resolution)
+    with pytest.raises(OctolgpError, match="no voxel"):
+        trinary_grid_chunks([(c[:0], p[:0]) for c, p in chunks], 0.1, z=z, z_range=z_range)
+
+
+def test_median_height_is_numpys_median_over_the_chunks() -> None:
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 1000):
+        centres = np.c_[rng.normal(size=(n, 2)), (rng.integers(-5, 9, n) + 0.5) * 0.2]
+        cut = np.sort(rng.choice(n + 1, 3))
+        chunks = [(c, np.zeros(len(c))) for c in np.split(centres, cut)]
+        assert median_height(chunks) == float(np.median(centres[:, 2]))
+    with pytest.raises(OctolgpError, match="no voxel"):
+        median_height([])
+
+
+@pytest.mark.parametrize("args", [["--z-range", "0", "2"], ["--z", "0.5"]])
+def test_cli_nav2_and_png_exports_of_a_3d_map_read_chunks(tmp_path: Path, args: list[str]) -> None:
+    room = simulate_lidar_room(3, seed=1, n_azimuth=128, n_elevation=8, max_range=10.0)
+    path = tmp_path / "room.octolgp"
+    hp = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+    with OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=hp), path=path) as m:
+        m.insert_scans([s.downsample(0.2) for s in room.scans()])
+        centres, prob = m.voxels()
+    z = float(args[1]) if args[0] == "--z" else None
+    z_range = (float(args[1]), float(args[2])) if args[0] == "--z-range" else None
+    write_nav2_map(tmp_path / "ref.pgm", centres, prob, 0.2, z=z, z_range=z_range)
+    assert main(["export", str(path), "--out", str(tmp_path / "m.pgm"), *args]) == 0
+    assert (tmp_path / "m.pgm").read_bytes() == (tmp_path / "ref.pgm").read_bytes()
+    if z is not None:  # the PNG's slice: the layer holding z (a figure: compare its input)
+        assert main(["export", str(path), "--out", str(tmp_path / "m.png"), *args]) == 0
+        assert (tmp_path / "m.png").stat().st_size > 0
