@@ -302,7 +302,7 @@ def prepared(scan: Scan, max_range: float | None, downsample: float | None) -> S
 
     if max_range is not None:
         reach = max_range if scan.max_range is None else min(scan.max_range, max_range)
-        scan = Scan(origin=scan.origin, points=scan.points, max_range=reach, stamp=scan.stamp)
+        scan = Scan(scan.origin, scan.points, reach, scan.stamp, scan.rotation)
     return scan if downsample is None else scan.downsample(downsample)
 
 
