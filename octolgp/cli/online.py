@@ -152,7 +152,7 @@ def _check_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iter
     if n != m.n_scans:  # a journal holds every scan or none
         raise OctolgpError(
             f"--resume: {str(out)!r} keeps no journal of its {m.n_scans} scans (saved from "
-            f"memory), so it cannot be checked against {source}"
+            f"memory by an older version), so it cannot be checked against {source}"
         )
     return scans
 

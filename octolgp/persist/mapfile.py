@@ -921,7 +921,7 @@ def _read_header(p: Path, con: sqlite3.Connection) -> MapHeader:
         raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
     if not checkpoints or checkpoints != sorted(checkpoints) or checkpoints[-1] > n_scans:
         raise OctolgpError(f"map file {str(p)!r} is corrupt: checkpoints {checkpoints}")
-    if journal not in (0, n_scans - checkpoints[0]):  # 0: saved from memory, no journal
+    if journal not in (0, n_scans - checkpoints[0]):  # 0: saved from memory by version 6 or older
         raise OctolgpError(
             f"map file {str(p)!r} is corrupt: {journal} journaled scans, n_scans {n_scans}"
         )

@@ -115,10 +115,19 @@ class MemoryJournal:
 
     @property
     def nbytes(self) -> int:
-        """RAM held: the scans' blobs (or arrays) and the kept leaf records, bytes."""
-        rows = sum(r.nbytes for r in self._rows.values())
-        kept = sum(len(b) for c in self._kept.values() for b in c.values() if b is not None)
-        return rows + kept
+        """RAM held, bytes: :attr:`scan_bytes` and :attr:`leaf_bytes`."""
+        return self.scan_bytes + self.leaf_bytes
+
+    @property
+    def scan_bytes(self) -> int:
+        """Bytes of the journaled scans: blobs (or arrays), origins, rotations, and
+        :data:`ROW_OVERHEAD` each."""
+        return sum(r.nbytes for r in self._rows.values())
+
+    @property
+    def leaf_bytes(self) -> int:
+        """Bytes of the leaf records kept as of the checkpoints."""
+        return sum(len(b) for c in self._kept.values() for b in c.values() if b is not None)
 
     def scans(self, start: int = 0) -> Iterator[Scan]:
         """The journaled scans with number > ``start``, in order."""
