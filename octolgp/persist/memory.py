@@ -204,13 +204,19 @@ class MemoryJournal:
         """
         checkpointed = checkpointed or {}
         rows = [(int(i), _row(s, self._precision)) for i, s in journal]
-        for c, leaves in checkpointed.items():  # one checkpoint per iteration
-            self._kept.setdefault(c, {}).update(self._records(leaves.items()))
-        if self._checkpoints[-1] == self._n_scans:  # the rebuilt leaves are its state
-            latest = self._kept.get(self._n_scans, {})
-            for k in keys:  # one row dropped per leaf
-                latest.pop(int(k), None)
-        self._keep(keys, skip=[*checkpointed, self._n_scans])
+        records = {c: self._records(leaves.items()) for c, leaves in checkpointed.items()}
+        before = {c: dict(kept) for c, kept in self._kept.items()}
+        try:  # all or nothing, as the file's transaction
+            for c, rebuilt in records.items():  # one checkpoint per iteration
+                self._kept.setdefault(c, {}).update(rebuilt)
+            if self._checkpoints[-1] == self._n_scans:  # the rebuilt leaves are its state
+                latest = self._kept.get(self._n_scans, {})
+                for k in keys:  # one row dropped per leaf
+                    latest.pop(int(k), None)
+            self._keep(keys, skip=[*checkpointed, self._n_scans])
+        except BaseException:
+            self._kept = before
+            raise
         self._rows.update(rows)
 
     def _keep(self, keys: list[int], skip: Iterable[int] = ()) -> None:
