@@ -120,7 +120,7 @@ def test_absolute_poses_in_3d_and_in_memory(tmp_path: Path) -> None:
     turn = np.eye(4)
     turn[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # 90° about z: quaternion (0 0 √½ √½)
     new_4 = turn.copy()
-    new_4[:3, 3] = scans[3].origin + [0.1, 0.0, 0.0]
+    new_4[:3, 3] = scans[3].origin + np.array([0.1, 0.0, 0.0])
     lines = [
         "# scan x y z qx qy qz qw, then a KITTI 3x4 row",
         "4 " + " ".join(repr(float(v)) for v in [*new_4[:3, 3], 0.0, 0.0, half, half]),
@@ -150,7 +150,8 @@ def test_absolute_poses_in_3d_and_in_memory(tmp_path: Path) -> None:
         assert snapshot(back) == snapshot(in_ram) == snapshot(by_relative)
         for s, r in zip(back.scans(), in_ram.scans(), strict=True):
             assert s.points.tobytes() == r.points.tobytes()
-            assert s.rotation is not None and r.rotation is not None
+            assert s.rotation is not None
+            assert r.rotation is not None
             assert s.rotation.tobytes() == r.rotation.tobytes()
     fresh = OnlineMap(config(3))
     fresh.insert_scans(
@@ -286,14 +287,17 @@ def test_the_journal_keeps_rotations_bit_for_bit(tmp_path: Path) -> None:
     in_ram.insert_scans(scans)
     with OnlineMap.open(tmp_path / "m.octolgp", read_only=True) as back:
         for a, b, s in zip(back.scans(), in_ram.scans(), scans, strict=True):
-            assert s.rotation is not None and a.rotation is not None and b.rotation is not None
+            assert s.rotation is not None
+            assert a.rotation is not None
+            assert b.rotation is not None
             assert a.rotation.tobytes() == b.rotation.tobytes() == s.rotation.tobytes()
     con = sqlite3.connect(tmp_path / "m.octolgp")  # the checksum covers the rotation
     con.execute("UPDATE scans SET rotation = ? WHERE idx = 3", (np.eye(2).tobytes(),))
     con.commit()
     con.close()
-    with OnlineMap.open(tmp_path / "m.octolgp") as back, pytest.raises(
-        OctolgpError, match="journaled scan 3 fails its checksum"
+    with (
+        OnlineMap.open(tmp_path / "m.octolgp") as back,
+        pytest.raises(OctolgpError, match="journaled scan 3 fails its checksum"),
     ):
         back.correct_poses({3: pose(0.0, 0.0, 0.0)})
 

@@ -296,7 +296,8 @@ def test_a_map_in_memory_keeps_the_journal_window_a_file_keeps(tmp_path: Path, e
             assert snapshot(in_ram) == snapshot(on_disk)
             assert in_ram.journal_start == on_disk.journal_start
             kept = in_ram._ram_journal
-            assert kept is not None and on_disk._file is not None
+            assert kept is not None
+            assert on_disk._file is not None
             assert kept.checkpoints == on_disk._file.checkpoints
             rows = [sorted(j.checkpoint_rows()) for j in (kept, on_disk._file)]
             assert [r[:2] for r in rows[0]] == [r[:2] for r in rows[1]]

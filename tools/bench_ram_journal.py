@@ -90,5 +90,6 @@ def main() -> None:
     journal = scans_only(config, [s.rounded(0.01) for s in street])
     report("street", street, list(journal.scans()), journal.nbytes, journal.nbytes)
 
+
 if __name__ == "__main__":
     main()

@@ -326,8 +326,11 @@ def _scan_crc(
     stamp: object,
     rotation: bytes | None = None,
 ) -> int:
-    """CRC-32 of a journal row's values (floats by their exact ``repr``; the rotation's
-    bytes when it has one, so rows without one keep the checksum of older files)."""
+    """CRC-32 of a journal row's values (floats by their exact ``repr``).
+
+    The rotation's bytes count when the row has one, so rows without one keep the
+    checksum older files gave them.
+    """
     crc = zlib.crc32(
         points, zlib.crc32(origin, zlib.crc32(f"{dim}|{max_range!r}|{stamp!r}".encode()))
     )

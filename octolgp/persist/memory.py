@@ -22,54 +22,63 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from dataclasses import dataclass
 
+import numpy as np
+
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.engines import engine_for
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
 from octolgp.persist.journal import decode_points, encode_points, next_checkpoints
 from octolgp.persist.mapfile import decode_leaf, encode_leaves
-from octolgp.scan import FloatArray, Scan
+from octolgp.scan import Scan
 
 __all__ = ["MemoryJournal"]
 
 ROW_OVERHEAD = 200
-"""Bytes of Python objects counted per journaled scan besides its arrays and blob."""
+"""Bytes of Python objects per journaled scan besides its blob and pose (measured with
+``tracemalloc``: the row, two ``bytes`` headers, the dict entry)."""
 
 
 @dataclass(frozen=True, slots=True)
 class _Row:
-    """One journaled scan: its points as the steps' blob, or the scan itself unrounded."""
+    """One journaled scan: its points' blob and its pose.
+
+    The points as the steps' blob (or, unrounded, the scan itself); the pose as float64
+    bytes, the origin then the rotation when it has one.
+    """
 
     blob: bytes | None
     scan: Scan | None
-    origin: FloatArray
+    pose: bytes
     max_range: float | None
     stamp: float | None
-    rotation: FloatArray | None
 
     @property
     def nbytes(self) -> int:
         held = len(self.blob) if self.blob is not None else 0
         if self.scan is not None:
             held += self.scan.points.nbytes
-        if self.rotation is not None:
-            held += self.rotation.nbytes
-        return held + self.origin.nbytes + ROW_OVERHEAD
+        return held + len(self.pose) + ROW_OVERHEAD
 
 
 def _row(scan: Scan, precision: float | None) -> _Row:
     if precision is None:  # kept as given: the scan's read-only arrays
-        return _Row(None, scan, scan.origin, scan.max_range, scan.stamp, scan.rotation)
-    blob = encode_points(scan, precision)
-    return _Row(blob, None, scan.origin, scan.max_range, scan.stamp, scan.rotation)
+        return _Row(None, scan, b"", scan.max_range, scan.stamp)
+    pose = scan.origin.astype("<f8").tobytes()
+    if scan.rotation is not None:
+        pose += scan.rotation.astype("<f8").tobytes()
+    return _Row(encode_points(scan, precision), None, pose, scan.max_range, scan.stamp)
 
 
-def _scan(row: _Row) -> Scan:
+def _scan(row: _Row, dim: int) -> Scan:
     if row.scan is not None:
         return row.scan
     assert row.blob is not None
-    points = decode_points(row.blob, row.origin, row.origin.shape[0])
-    return Scan(row.origin, points, row.max_range, row.stamp, row.rotation)
+    pose = np.frombuffer(row.pose, "<f8")
+    origin = pose[:dim]
+    rotation = pose[dim:].reshape(dim, dim) if pose.size > dim else None
+    points = decode_points(row.blob, origin, dim)
+    return Scan(origin, points, row.max_range, row.stamp, rotation)
 
 
 class MemoryJournal:
@@ -94,6 +103,7 @@ class MemoryJournal:
     def __init__(self, config: MapConfig, current: Callable[[int], Leaf | None]) -> None:
         self._engine = engine_for(config)
         self._grid = LeafGrid.from_config(config)
+        self._dim = config.dim
         self._precision = config.online.scan_precision
         self._window = config.online.journal_scans
         self._current = current
@@ -120,8 +130,7 @@ class MemoryJournal:
 
     @property
     def scan_bytes(self) -> int:
-        """Bytes of the journaled scans: blobs (or arrays), origins, rotations, and
-        :data:`ROW_OVERHEAD` each."""
+        """Bytes of the journaled scans: blobs (or arrays), poses, :data:`ROW_OVERHEAD` each."""
         return sum(r.nbytes for r in self._rows.values())
 
     @property
@@ -138,11 +147,13 @@ class MemoryJournal:
         """``(number, scan)`` of the journaled scans with number > ``start``, in order."""
         for i, row in list(self._rows.items()):  # one scan per row
             if i > start:
-                yield i, _scan(row)
+                yield i, _scan(row, self._dim)
 
     def read_scans(self, indices: list[int]) -> dict[int, Scan]:
         """The journaled scans with these numbers (absent numbers are left out)."""
-        return {int(i): _scan(self._rows[int(i)]) for i in indices if int(i) in self._rows}
+        return {
+            int(i): _scan(self._rows[int(i)], self._dim) for i in indices if int(i) in self._rows
+        }
 
     def checkpoint_rows(self) -> Iterator[tuple[int, int, bytes | None]]:
         """Every ``(checkpoint, key, record)`` kept (``None``: no leaf then)."""
