@@ -340,3 +340,23 @@ def test_readers_keep_the_sensor_rotation() -> None:
     rounded = laser.rounded(0.01)
     assert rounded.rotation is not None
     assert rounded.rotation.tobytes() == laser.rotation.tobytes()  # type: ignore[union-attr]
+
+
+def test_an_npz_log_keeps_the_sensor_rotations(tmp_path: Path) -> None:
+    from octolgp import load_scans
+    from octolgp.io.npz import write_npz
+
+    scans = posed_mission()[0]
+    bare = Scan(scans[0].origin, scans[0].points, scans[0].max_range)
+    write_npz(tmp_path / "log.npz", [bare, *scans[1:]])
+    back = list(load_scans(tmp_path / "log.npz"))
+    assert back[0].rotation is None
+    for got, want in zip(back[1:], scans[1:], strict=True):
+        assert got.rotation is not None
+        assert want.rotation is not None
+        assert got.rotation.tobytes() == want.rotation.tobytes()
+    arrays = dict(np.load(tmp_path / "log.npz"))
+    arrays["rotations"][3] = np.diag([1.0, -1.0])  # a reflection
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(OctolgpError, match=r"'rotations' row 3 is not a rotation"):
+        load_scans(tmp_path / "bad.npz")
