@@ -106,10 +106,13 @@ def test_a_correction_that_moves_a_scan_away_removes_the_leaves_it_made(tmp_path
         assert_same_map(m, fresh)
 
 
-def test_a_correction_while_learning_moves_the_buffered_scans(tmp_path: Path) -> None:
+@pytest.mark.parametrize("in_ram", [False, True])
+def test_a_correction_while_learning_moves_the_buffered_scans(tmp_path: Path, in_ram: bool) -> None:
+    """In RAM the lattice map keeps the buffered scans' evidence while it learns: the
+    correction rebuilds it too."""
     learning = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=5))
     scans, _ = drifted_mission()
-    with OnlineMap(learning, path=tmp_path / "m.octolgp") as m:
+    with OnlineMap(learning, path=None if in_ram else tmp_path / "m.octolgp") as m:
         m.insert_scans(scans[:3])
         update = m.correct_scans({2: pose(0.1, 0.0, 0.02)})
         assert update.buffered

@@ -767,7 +767,8 @@ class OnlineMap(MapReads):
         storage = self._journal_source
         assert storage is not None  # _journaled refuses a map without a journal
         start, extents = self._extents.read(storage, self.n_scans)  # read before any write
-        if self.hyperparameters is None:  # still buffering: only the journal moves
+        learning = self.hyperparameters is None
+        if learning and not len(self.store):  # still buffering, no leaf: only the journal moves
             self._write([], corrected=list(new.items()))
             self._bootstrap.corrected(new)
             self._extents.replace(moved_extents(extents, start, new, self.grid))
@@ -784,10 +785,15 @@ class OnlineMap(MapReads):
         leaves = [gathered[k] for k in keys]
         del gathered
         self.engine.rebuilt(replay.affected)
-        fits = self._fit(leaves, stages)
+        if learning:  # a deferring map's buffered evidence: fitted once it has hyperparameters
+            for leaf in leaves:  # new objects: marked, not copied
+                leaf.pending = True
+            fits, fitted = [], list(zip(keys, leaves, strict=True))
+        else:
+            fits = self._fit(leaves, stages)
+            fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
         # 3. the one write: store, then the file in one transaction, then the sink
         t = time.perf_counter()
-        fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
         self._write(
             fitted,
             stamp=self.n_scans,
@@ -795,11 +801,21 @@ class OnlineMap(MapReads):
             corrected=list(new.items()),
             checkpointed=checkpointed,
         )
+        if learning:
+            self._bootstrap.corrected(new)
         self._extents.replace(replay.extents)
         stages["store"] = time.perf_counter() - t
         stages["replayed_scans"] = float(len(replay.scans))
         update = self._update(
-            self.n_scans, t0, stages, len(replay.affected), fits, new_items, len(removed)
+            self.n_scans,
+            t0,
+            stages,
+            len(replay.affected),
+            fits,
+            new_items,
+            len(removed),
+            refit=len(fitted),
+            buffered=learning,
         )
         self.sink.on_update(update, self._change(fitted, tuple(removed)))
         return update
