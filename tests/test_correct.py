@@ -347,6 +347,16 @@ def test_corrections_between_inserts_keep_the_scan_index_current(tmp_path: Path)
         assert_same_map(m, fresh)
 
 
+def test_a_map_made_without_a_journal_cannot_be_corrected() -> None:
+    m = OnlineMap(config(), journal=False)
+    m.insert_scans(drifted_mission()[0][:3])
+    assert m.journal_bytes == 0
+    before = snapshot(m)
+    with pytest.raises(OctolgpError, match=r"keeps no journal.*journal=False"):
+        m.correct_scans({2: pose(0.1, 0.0, 0.0)})
+    assert snapshot(m) == before
+
+
 def test_a_map_saved_from_memory_keeps_its_journal(tmp_path: Path) -> None:
     m = OnlineMap(config())
     m.insert_scans(drifted_mission()[0][:4])

@@ -146,6 +146,11 @@ class OnlineMap(MapReads):
     storage : MapStorage, optional
         An opened map file whose state this map takes over (what :meth:`open`
         passes); ``config`` must be the file's.
+    journal : bool, default True
+        A map without a file keeps its scans' journal in RAM, so that it can be
+        corrected (Notes); ``False`` spares that RAM, and corrections are then
+        refused. A map file (or a budget's spill file) keeps the journal whatever
+        this says.
 
     Notes
     -----
@@ -191,6 +196,7 @@ class OnlineMap(MapReads):
         recording: Any = None,
         sink: Sink | None = None,
         storage: MapStorage | None = None,
+        journal: bool = True,
     ) -> None:
         if config is None:
             config = MapConfig()
@@ -232,7 +238,7 @@ class OnlineMap(MapReads):
                 else MapFile.spill(self.config)
             )
             self.store.attach(self._file, [], self._fitted)
-        else:
+        elif journal:
             self._ram_journal = MemoryJournal(self.config, self.store.peek)
 
     def _resume(self, storage: MapStorage) -> None:
@@ -872,7 +878,10 @@ class OnlineMap(MapReads):
                 f"{self.config.online.journal_scans}); its evidence is folded into the map"
             )
         if kept is None:
-            raise OctolgpError(f"{name}: this map keeps no journal of its scans to correct")
+            raise OctolgpError(
+                f"{name}: this map keeps no journal of its scans to correct (it was made "
+                "with journal=False)"
+            )
         old = kept.read_scans(numbers)
         if len(old) != len(numbers):
             raise OctolgpError(
@@ -1278,8 +1287,7 @@ class OnlineMap(MapReads):
 
 def _provisional_map(config: MapConfig, scans: list[Scan]) -> OnlineMap:
     """A throw-away in-memory map of buffered scans (what :meth:`OnlineMap.flush` would make)."""
-    provisional = OnlineMap(config)
-    provisional._ram_journal = None  # thrown away: nothing to correct
+    provisional = OnlineMap(config, journal=False)  # thrown away: nothing to correct
     if scans:
         provisional.insert_batch(scans)
     return provisional
