@@ -218,15 +218,20 @@ def _export_nav2(
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    """``octolgp correct``: apply pose corrections to a map file, in one transaction."""
-    from octolgp.io.corrections import read_corrections
+    """``octolgp correct``: move scans of a map file by corrections or to absolute poses."""
+    from octolgp.io.corrections import read_corrections, read_poses
     from octolgp.mapping.online import OnlineMap
 
     with OnlineMap.open(args.map) as m:
-        corrections = read_corrections(args.poses, m.config.dim)
-        update = m.correct_scans(corrections)
+        reach = range(m.journal_start + 1, m.n_scans + 1)
+        if args.absolute is not None:
+            poses = read_poses(args.absolute, m.config.dim, reach)
+            update, n = m.correct_poses(poses), len(poses)
+        else:
+            corrections = read_corrections(args.poses, m.config.dim, reach)
+            update, n = m.correct_scans(corrections), len(corrections)
     print(
-        f"corrected {len(corrections)} scans of {args.map}: {update.refit_leaves} leaves "
+        f"corrected {n} scans of {args.map}: {update.refit_leaves} leaves "
         f"rebuilt, {update.removed_leaves} removed, in {update.seconds:.2f} s"
     )
     return 0
