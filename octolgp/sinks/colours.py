@@ -60,7 +60,8 @@ def _interpolate(anchors: NDArray[Any], value: NDArray[Any]) -> NDArray[np.uint8
     """RGB uint8 per value along a ``(t, R, G, B)`` anchor table (values clipped to [0, 1])."""
     t = np.clip(np.asarray(value, dtype=np.float64), 0.0, 1.0)
     rgb = [np.interp(t, anchors[:, 0], anchors[:, c]) for c in (1, 2, 3)]
-    return np.rint(np.stack(rgb, axis=-1)).astype(np.uint8)
+    out: NDArray[np.uint8] = np.rint(np.stack(rgb, axis=-1)).astype(np.uint8)
+    return out
 
 
 def probability_colours(prob: NDArray[Any]) -> NDArray[np.uint8]:

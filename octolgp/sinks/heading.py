@@ -50,13 +50,16 @@ def view_direction(scan: Scan) -> FloatArray | None:
     starts, ends = edges[::2], edges[1::2]
     lengths = np.minimum(ends - starts, _BINS)
     longest = int(np.argmax(lengths))
-    if lengths[longest] * (360.0 / _BINS) < BLIND_DEGREES:
+    if (lengths[longest] + 2) * (360.0 / _BINS) < BLIND_DEGREES:  # a gap spans 2 bins more
         return None
     # exact span of the beams: turn the gap's middle to ±π, then the beams' extremes
     gap = -np.pi + (starts[longest] + 0.5 * lengths[longest]) * (2 * np.pi / _BINS)
     back = gap + np.pi
     turned = np.angle(np.exp(1j * (azimuth - back)))
-    yaw = back + 0.5 * (turned.min() + turned.max())
+    lo, hi = float(turned.min()), float(turned.max())
+    if np.degrees(2 * np.pi - (hi - lo)) < BLIND_DEGREES - 1e-9:
+        return None
+    yaw = back + 0.5 * (lo + hi)
     out = np.zeros(scan.dim)
     out[:2] = np.cos(yaw), np.sin(yaw)
     return out

@@ -402,9 +402,9 @@ class RerunSink:
         3D voxels by height; ``probability`` draws P(occupied) blue (free), grey (0.5,
         unknown), red (occupied). The ``legend/*`` entities say which.
     free_voxels : bool
-        3D maps: also draw free voxels (P < :data:`FREE_BELOW`),
-        one in :data:`FREE_STRIDE` cubed, at most 4,096 a region. Off by default: free space hides
-        the occupied voxels behind it.
+        3D maps: also draw free voxels (P < :data:`FREE_BELOW`), one in
+        :data:`FREE_STRIDE` cubed, at most 4,096 a region. Off by default: free space
+        hides the occupied voxels behind it.
     provisional : bool
         While the map learns its hyperparameters, draw its provisional fit after buffered
         scans 1, 2, 4, 8, ... (each draw costs a learning and a fit of the buffer, about
@@ -519,6 +519,7 @@ class RerunSink:
                 "map/provisional" if change.dim == 2 else "world/provisional", rr.Clear.recursive()
             )
             self._provisional_drawn = False
+            self._provisional_paths.clear()
         self._buffered = 0
         if change.dim == 2:
             self._update_tiles(change)
@@ -559,20 +560,31 @@ class RerunSink:
                 regions.put(leaf.key, np.rint(leaf.lo / res).astype(np.int64), value)
                 box = _grow(box, value[0], value[1])
             self._log_voxels(f"{prefix}/voxels", regions, clear_others=True)
+        self._provisional_drawn = True
         if box is None:
             return
         self._follow(*box)
         lo, hi = box
         label = f"provisional: hyperparameters still being learnt (scan {update.scan})"
+        shape: Any
         if change.dim == 2:
             corner = _flip_y(np.array([[lo[0], hi[1]]]))
-            shape = rr.Boxes2D(mins=corner, sizes=[hi - lo], labels=[label], show_labels=True)
+            shape = rr.Boxes2D(
+                mins=corner,
+                sizes=[hi - lo],
+                labels=[label],
+                show_labels=True,
+                colors=[_PROVISIONAL_COLOUR],
+            )
         else:
             shape = rr.Boxes3D(
-                centers=[0.5 * (lo + hi)], half_sizes=[0.5 * (hi - lo)], labels=[label]
+                centers=[0.5 * (lo + hi)],
+                half_sizes=[0.5 * (hi - lo)],
+                labels=[label],
+                show_labels=True,
+                colors=[_PROVISIONAL_COLOUR],
             )
-        rec.log(f"{prefix}/label", shape, rr.Boxes2D.from_fields(colors=[_PROVISIONAL_COLOUR]))
-        self._provisional_drawn = True
+        rec.log(f"{prefix}/label", shape)
 
     def _metrics(self, update: ScanUpdate) -> None:
         rec = self.rec
