@@ -129,8 +129,10 @@ FREE_STRIDE = 2
 """Free voxels drawn: those whose key is a multiple of this on every axis (one in 8)."""
 
 _ROBOT_COLOUR = (30, 144, 255)
+_ROBOT_COLOUR_ON_PROBABILITY = (230, 0, 180)  # magenta: the probability map's free is blue
 _SCAN_COLOUR = (255, 110, 0)
 _PATH_COLOUR = (60, 170, 60)
+_ARROW_COLOUR_3D = (245, 245, 245)  # white: no colour of the height or probability maps
 _PROVISIONAL_COLOUR = (230, 120, 0)
 _FREE_COLOUR = (110, 170, 235)
 _LEGEND_WIDTH = 101  # colour bar columns: one per hundredth of the scale
@@ -254,7 +256,7 @@ def _eye(bounds: Bounds) -> Any:
     centre = 0.5 * (lo + hi)
     reach = max(float(np.linalg.norm(hi - lo)), 1.0)
     towards = np.array([-0.55, -0.65, 0.52])  # unit-ish: down at about 30 degrees
-    position = centre + 0.95 * reach * towards / np.linalg.norm(towards)
+    position = centre + 0.75 * reach * towards / np.linalg.norm(towards)
     return rrb.EyeControls3D(
         kind=rrb.Eye3DKind.Orbital,
         position=position.tolist(),
@@ -334,7 +336,7 @@ def default_blueprint(
         name="legend",
         visual_bounds=rrb.VisualBounds2D(
             x_range=[-0.12 * _LEGEND_WIDTH, 1.12 * _LEGEND_WIDTH],
-            y_range=[-0.6 * _LEGEND_HEIGHT, 3.2 * _LEGEND_HEIGHT],
+            y_range=[-2.2 * _LEGEND_HEIGHT, 2.8 * _LEGEND_HEIGHT],
         ),
     )
     plots = rrb.Vertical(
@@ -600,7 +602,7 @@ class RerunSink:
         rec = self.rec
         self._dim = scan.dim
         ranges = np.linalg.norm(scan.points - scan.origin, axis=1)
-        self._arrow = float(np.clip(0.25 * np.median(ranges), 0.5, 5.0))
+        self._arrow = float(np.clip(0.5 * np.median(ranges), 2.0, 8.0))
         if scan.dim == 3:  # colour ramp from the first scan's heights
             lo, hi = np.percentile(scan.points[:, 2], [2.0, 98.0])
             self._heights = (float(lo), float(max(hi, lo + 1e-6)))
@@ -613,23 +615,16 @@ class RerunSink:
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self._log_legend(scan.dim)
         if scan.dim == 2:  # styles, static: each scan then sends positions only
-            rec.log(
-                "map/robot",
-                rr.Points2D.from_fields(radii=-6.0, colors=[_ROBOT_COLOUR]),
-                static=True,
-            )
-            rec.log(
-                "map/heading",
-                rr.Arrows2D.from_fields(radii=-2.0, colors=[_ROBOT_COLOUR]),
-                static=True,
-            )
+            robot = _ROBOT_COLOUR_ON_PROBABILITY if self.colors == "probability" else _ROBOT_COLOUR
+            rec.log("map/robot", rr.Points2D.from_fields(radii=-6.0, colors=[robot]), static=True)
+            rec.log("map/heading", rr.Arrows2D.from_fields(radii=-2.0, colors=[robot]), static=True)
             rec.log(
                 "map/scan", rr.Points2D.from_fields(radii=-1.5, colors=[_SCAN_COLOUR]), static=True
             )
         else:
             rec.log(
                 "world/sensor/heading",
-                rr.Arrows3D.from_fields(radii=-3.0, colors=[_ROBOT_COLOUR]),
+                rr.Arrows3D.from_fields(radii=-4.0, colors=[_ARROW_COLOUR_3D]),
                 static=True,
             )
         self._started = True
@@ -651,10 +646,10 @@ class RerunSink:
         self.rec.log(
             "legend/labels",
             rr.Points2D(
-                [[0.5 * w, -0.3 * h], [0.0, 1.8 * h], [0.5 * w, 1.8 * h], [w, 1.8 * h]],
+                [[0.5 * w, -1.3 * h], [0.0, 1.9 * h], [0.5 * w, 1.9 * h], [w, 1.9 * h]],
                 labels=[title, *ends],
                 radii=0.5,
-                colors=[(0, 0, 0)],
+                colors=[(230, 230, 230)],  # the labels' text, on the viewer's dark boxes
                 show_labels=True,
             ),
             static=True,
