@@ -13,6 +13,7 @@ sink (opened as ``octolgp run --rerun-save`` opens it:
 
     .venv/bin/python tools/bench_rerun.py --scans 910 --repeats 1
     .venv/bin/python tools/bench_rerun.py --scans 300 --repeats 2 --before none
+    .venv/bin/python tools/bench_rerun.py --scans 910 --repeats 1 --before 0563c95 --probability
 """
 
 from __future__ import annotations
@@ -58,14 +59,17 @@ def sink_at(revision: str) -> ModuleType:
     return module
 
 
-def opener(module: ModuleType, rays: int) -> Opener:
-    """How ``octolgp run --rerun-save`` of that module's revision opens a recording."""
+def opener(module: ModuleType, rays: int, **options: Any) -> Opener:
+    """How ``octolgp run --rerun-save`` of that module's revision opens a recording.
+
+    ``options`` go to the sink (``colors="probability"``: ``--rerun-colors probability``).
+    """
 
     def open_(rrd: Path, dim: int) -> tuple[Any, Any]:
         if "blueprint" in module.open_recording.__code__.co_varnames:
             bp = module.default_blueprint(dim)
             rec, _ = module.open_recording("octolgp-bench", save=rrd, blueprint=bp)
-            return rec, module.RerunSink(rec, rays=rays, blueprint=False)
+            return rec, module.RerunSink(rec, rays=rays, blueprint=False, **options)
         rec, _ = module.open_recording("octolgp-bench", save=rrd)
         return rec, module.RerunSink(rec, rays=rays)
 
@@ -118,6 +122,11 @@ def main() -> int:
     parser.add_argument(
         "--before", default=BEFORE, help=f"git revision to compare with (default {BEFORE}; none)"
     )
+    parser.add_argument(
+        "--probability",
+        action="store_true",
+        help="also run the current sink with colors='probability' (--rerun-colors probability)",
+    )
     args = parser.parse_args()
     scans = list(load_scans(INTEL))[: args.scans]
     config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(n_jobs=args.jobs))
@@ -127,6 +136,10 @@ def main() -> int:
     if args.before != "none":
         runs[f"Rerun sink at {args.before}"] = opener(sink_at(args.before), args.rays)
     runs["Rerun sink now"] = opener(current, args.rays)
+    if args.probability:
+        runs["Rerun sink now, probability colours"] = opener(
+            current, args.rays, colors="probability"
+        )
     seconds: dict[str, list[float]] = {name: [] for name in runs}
     sizes: dict[str, list[int]] = {name: [] for name in runs}
     names = list(runs)
