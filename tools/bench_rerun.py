@@ -55,6 +55,7 @@ def sink_at(revision: str) -> ModuleType:
     spec = importlib.util.spec_from_loader(f"octolgp_rerun_{revision}", loader=None)
     assert spec is not None
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
     exec(compile(source, f"{revision}:octolgp/sinks/rerun.py", "exec"), module.__dict__)
     return module
 
@@ -129,7 +130,9 @@ def main() -> int:
     )
     args = parser.parse_args()
     scans = list(load_scans(INTEL))[: args.scans]
-    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(n_jobs=args.jobs))
+    # fits in insert_scan in every map: a map with a sink never defers them (OnlineConfig.defer_fit)
+    online = OnlineConfig(n_jobs=args.jobs, defer_fit=False)
+    config = MapConfig(dim=2, resolution=0.1, online=online)
     hp = learn_hyperparameters(scans[:10], config)
     config = dataclasses.replace(config, hyperparameters=hp)
     runs: dict[str, Opener | None] = {"off (null sink)": None}
