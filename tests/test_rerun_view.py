@@ -303,7 +303,7 @@ def test_bad_colors_raise_naming_the_field() -> None:
 
 # ---------------------------------------------------------------- provisional map
 def test_the_provisional_map_is_drawn_while_learning_then_cleared(tmp_path: Path) -> None:
-    """Learning on 6 scans: the provisional fit after buffered scans 1, 2 and 4, each the
+    """Learning on 6 scans: the provisional fit after buffered scans 1 and 4, each the
     map reads then gave, labelled; cleared at scan 6, where the learnt map's tiles begin."""
     rrd, tile, res = tmp_path / "m.rrd", 32, 0.1
     scans = list(load_scans(INTEL20))[:8]
@@ -320,9 +320,9 @@ def test_the_provisional_map_is_drawn_while_learning_then_cleared(tmp_path: Path
     rec.flush()
     rec.disconnect()
     drawn = _rows(rrd, "/map/provisional/tiles/", "EncodedImage:blob")
-    assert {s for _, s, _ in drawn} == {1, 2, 4}
+    assert {s for _, s, _ in drawn} == {1, 4}
     labels = _rows(rrd, "/map/provisional/label", "Boxes2D:labels")
-    assert [s for _, s, _ in labels] == [1, 2, 4]
+    assert [s for _, s, _ in labels] == [1, 4]
     assert all("provisional" in v.as_py()[0] for _, _, v in labels)
     clears = _rows(rrd, "/map/provisional", "Clear:is_recursive")
     assert [(e, s, v.as_py()) for e, s, v in clears] == [("/map/provisional", 6, [True])]
@@ -341,6 +341,25 @@ def test_the_provisional_map_is_drawn_while_learning_then_cleared(tmp_path: Path
     # the metrics are plotted while learning too, and the recording still replays
     assert len(_rows(rrd, "/metrics/insert_seconds", "Scalars:scalars")) == 8
     assert len(list(read_rrd(rrd))) == 8
+
+
+def test_3d_provisional_voxels_while_learning(tmp_path: Path) -> None:
+    rrd = tmp_path / "m.rrd"
+    scans = _sphere_scans(3, 4, np.array([0.3, 0.0, 0.0]))
+    config = MapConfig(dim=3, resolution=0.2, online=OnlineConfig(learn_scans=3, n_jobs=1))
+    with _record(rrd, scans, config):
+        pass
+    drawn = _rows(rrd, "/world/provisional/voxels/", "Boxes3D:centers")
+    assert drawn
+    assert {s for _, s, _ in drawn} == {1}
+    labels = _rows(rrd, "/world/provisional/label", "Boxes3D:labels")
+    assert labels
+    assert all("provisional" in v.as_py()[0] for _, _, v in labels)
+    clears = _rows(rrd, "/world/provisional", "Clear:is_recursive")
+    assert [(e, s) for e, s, _ in clears if e == "/world/provisional"] == [
+        ("/world/provisional", 3)
+    ]
+    assert min(s for _, s, _ in _rows(rrd, "/world/map/voxels/", "Boxes3D:centers")) == 3
 
 
 def test_no_provisional_map_when_turned_off(tmp_path: Path) -> None:
