@@ -86,7 +86,7 @@ def screenshot(rrd: Path, last_scan: int, png: Path, *, settle: float) -> None:
     try:
         viewer.open(str(rrd))
         time.sleep(settle)  # let the viewer load the recording
-        viewer.set_time("scan", sequence=last_scan)
+        viewer.set_time("scan", sequence=last_scan, play_state="paused")
         time.sleep(settle)  # and draw the last scan's frame
         png.write_bytes(viewer.take_screenshot())
     finally:
@@ -105,6 +105,7 @@ def main() -> int:
     parser.add_argument("--flags", default="", help="more `octolgp run` flags (one string)")
     parser.add_argument("--suffix", default="", help="added to the screenshots' names")
     parser.add_argument("--only", choices=["2d", "3d"], default=None, help="one of the two")
+    parser.add_argument("--at", type=int, default=None, help="scan to show (default: the last)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     flags = shlex.split(args.flags)
@@ -121,7 +122,7 @@ def main() -> int:
                 f"{size / 1e6:.1f} MB ({size / n / 1e3:.1f} kB per scan)"
             )
             png = args.out / f"rerun_{name}{args.suffix}.png"
-            screenshot(rrd, n, png, settle=args.settle)
+            screenshot(rrd, n if args.at is None else args.at, png, settle=args.settle)
     return 0
 
 
