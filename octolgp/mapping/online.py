@@ -492,8 +492,11 @@ class OnlineMap(MapReads):
 
     def _provisional_change(self) -> MapChange:
         """Every leaf of the provisional map of the buffered scans, as a sink sees leaves."""
-        provisional = self._bootstrap.provisional(_provisional_map)
-        return provisional._change(provisional.leaves())
+        return self._bootstrap.provisional(_provisional_map).full_change()
+
+    def full_change(self) -> MapChange:
+        """Every leaf of the map with its values, as a sink sees the leaves a step refitted."""
+        return self._change(self.leaves())
 
     def _journal(self, journal: list[tuple[int, Scan]]) -> None:
         """Journal scans that change no leaf (buffered to learn on), then show them."""
