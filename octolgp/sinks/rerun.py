@@ -465,7 +465,6 @@ class RerunSink:
         self._blueprint = blueprint
         self._follow_view = blueprint if follow is None else bool(follow)
         self._started = False
-        self._dim = 0
         self._path: list[NDArray[np.float64]] = []  # origins of the current path block
         self._occupancy: Tiles | None = None
         self._variance: Tiles | None = None
@@ -604,7 +603,6 @@ class RerunSink:
     def _start(self, scan: Scan) -> None:
         """Once: the default blueprint, the world's axes, the legend and the styles."""
         rec = self.rec
-        self._dim = scan.dim
         ranges = np.linalg.norm(scan.points - scan.origin, axis=1)
         self._arrow = float(np.clip(0.5 * np.median(ranges), 2.0, 8.0))
         if scan.dim == 3:  # colour ramp from the first scan's heights
