@@ -42,6 +42,9 @@ EXAMPLES = """examples:
   octolgp run data/intel_lab/intel-corrected.log.gz --config intel.toml --out intel.octolgp
 """
 
+RERUN_COLORS = ("auto", "probability")
+"""``--rerun-colors`` choices: :data:`octolgp.sinks.rerun.COLORS` (not imported: rerun is heavy)."""
+
 
 def _positive_int(text: str) -> int:
     value = int(text)
@@ -139,6 +142,18 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
         "--rerun-rays", type=_nonnegative_int, default=0, help="log every k-th beam as a ray"
     )
     p.add_argument("--rerun-uncertainty", action="store_true", help="log the variance layer")
+    p.add_argument(
+        "--rerun-colors",
+        choices=RERUN_COLORS,
+        default="auto",
+        help="map colours: auto (2D grey occupancy, 3D height) or probability (P(occupied): "
+        "blue free, grey unknown, red occupied); a legend view shows which",
+    )
+    p.add_argument(
+        "--rerun-free-voxels",
+        action="store_true",
+        help="3D: also draw free voxels (P < 0.25; one in 8, at most 4,096 a 32-voxel region)",
+    )
 
 
 class _Parser(argparse.ArgumentParser):

@@ -71,6 +71,8 @@ def _sink(rec: Any, args: argparse.Namespace) -> Any:
         rec,
         rays=args.rerun_rays,
         uncertainty=args.rerun_uncertainty,
+        colors=args.rerun_colors,
+        free_voxels=args.rerun_free_voxels,
         blueprint=False,  # the recording has the CLI's default blueprint
         follow=True,  # which the sink bounds on the map as it grows
     )

@@ -517,7 +517,19 @@ class OnlineMap(MapReads):
                 return update
         else:
             self._journal([(index, scan)])
-        return self._buffered_update(t0)
+        update = self._buffered_update(t0)
+        show = getattr(self.sink, "on_provisional", None)  # optional in a sink
+        if show is not None:
+            show(update, self._provisional_change)
+        return update
+
+    def _provisional_change(self) -> MapChange:
+        """Every leaf of the provisional map of the buffered scans, as a sink sees leaves."""
+        return self._bootstrap.provisional(_provisional_map).full_change()
+
+    def full_change(self) -> MapChange:
+        """Every leaf of the map with its values, as a sink sees the leaves a step refitted."""
+        return self._change(self.leaves())
 
     def _journal(self, journal: list[tuple[int, Scan]]) -> None:
         """Journal scans that change no leaf (buffered to learn on), then show them."""
