@@ -463,3 +463,16 @@ def test_counts_of_a_default_run(tmp_path: Path) -> None:
     assert rows["/map/heading"] == 1 + 2  # the style (static), then scans 2 and 3
     assert rows["/legend/bar"] == 1
     assert rows["/legend/labels"] == 1
+
+
+def test_heading_of_a_scan_with_its_rotation_is_its_forward_axis() -> None:
+    """An all-round scan carrying its orientation: the arrow is the rotation's x axis,
+    not the travel, from the first scan on."""
+    heading = Heading()
+    step = np.array([0.3, -0.4, 0.1])
+    for k, scan in enumerate(_sphere_scans(3, 3, step)):
+        yaw = 0.5 + k
+        c, s = np.cos(yaw), np.sin(yaw)
+        rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        posed = Scan(origin=scan.origin, points=scan.points, rotation=rotation)
+        np.testing.assert_allclose(heading.update(posed), [c, s, 0.0], atol=1e-12)

@@ -1,8 +1,11 @@
-"""Which way the robot faces, from what a scan carries: its beams, else its motion.
+"""Which way the robot faces, from what a scan carries: its pose, its beams, else its motion.
 
 A :class:`~octolgp.scan.Scan` holds the sensor's position and world-frame endpoints,
-not its orientation, so the Rerun view's heading arrow is worked out:
+and its orientation where the reader knew it (``Scan.rotation``). The Rerun view's
+heading arrow is, in that order:
 
+0. **Orientation.** The sensor's forward axis (the rotation's first column) where the
+   scan carries its rotation.
 1. **Field of view.** A sensor that sees less than all round (a forward-facing planar
    laser, as the Intel log's 180° one) leaves a gap of at least :data:`BLIND_DEGREES`
    in its beams' azimuths (about the world's ``z`` in 3D); the heading is the middle of
@@ -74,7 +77,9 @@ class Heading:
 
     def update(self, scan: Scan) -> FloatArray | None:
         """The unit heading of ``scan`` (``None`` until one is known); call once per scan."""
-        seen = view_direction(scan)
+        seen = None if scan.rotation is None else np.asarray(scan.rotation[:, 0], dtype=float)
+        if seen is None:
+            seen = view_direction(scan)
         if self._moved_from is None:
             self._moved_from = scan.origin
         step = scan.origin - self._moved_from
