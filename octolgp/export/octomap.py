@@ -73,6 +73,14 @@ def _as_occupied(occupied: ArrayLike, count: int) -> NDArray[np.bool_]:
     raise OctolgpError(f"occupied must be boolean (or 0/1), got dtype {v.dtype}")
 
 
+def _log_odds32(log_odds: ArrayLike, count: int) -> NDArray[np.float32]:
+    """Per-voxel log-odds as float32 (raises on a non-finite one or one beyond float32)."""
+    v = as_finite(log_odds, count, "log_odds")
+    if v.size and np.abs(v).max() > np.finfo(np.float32).max:
+        raise OctolgpError("log_odds must fit in float32")
+    return v.astype(np.float32)
+
+
 def _header(first_line: str, size: int, resolution: float) -> bytes:
     return (
         f"{first_line}\n{_COMMENT}id OcTree\nsize {size}\nres {float(resolution)!r}\ndata\n"
@@ -209,10 +217,7 @@ def write_ot(
     """
     _check_tree_args(resolution, tree_depth)
     keys16 = to_keys16(keys, tree_depth)
-    log_odds64 = as_finite(log_odds, keys16.shape[0], "log_odds")
-    if log_odds64.size and np.abs(log_odds64).max() > np.finfo(np.float32).max:
-        raise OctolgpError("log_odds must fit in float32")
-    values = log_odds64.astype(np.float32)
+    values = _log_odds32(log_odds, keys16.shape[0])
     if keys16.shape[0] == 0:
         write_bytes(path, [_header(OT_HEADER, 0, resolution)])
         return 0
@@ -280,10 +285,7 @@ def write_tree_chunks(
     for keys, values in chunks:  # one chunk of voxels per iteration
         keys16 = to_keys16(keys, tree_depth)
         if full:
-            v = as_finite(values, keys16.shape[0], "log_odds")
-            if v.size and np.abs(v).max() > np.finfo(np.float32).max:
-                raise OctolgpError("log_odds must fit in float32")
-            v32 = v.astype(np.float32)
+            v32 = _log_odds32(values, keys16.shape[0])
         else:
             v32 = np.where(_as_occupied(values, keys16.shape[0]), 1.0, -1.0).astype(np.float32)
         if keys16.shape[0] == 0:
