@@ -635,8 +635,9 @@ class MapConfig:
     hyperparameters : Hyperparameters or None
         ``None`` (default) learns them from the data; a value is used as given.
     memory_budget_mb : float or None
-        Bound on the RAM held by leaves, MB, at most 1e12 (:data:`MAX_MEMORY_BUDGET_MB`);
-        ``None`` (default) means no bound.
+        Bound on the RAM held by leaves and a step's working arrays, MB (10^6 bytes), at
+        most 1e12 (:data:`MAX_MEMORY_BUDGET_MB`): the leaves are held to the budget less
+        the room the largest recent step needed. ``None`` (default) means no bound.
     tree_depth : int
         OctoMap key depth: keys are 16-bit, ``floor(x / resolution) + 2**(depth-1)``.
     online : OnlineConfig

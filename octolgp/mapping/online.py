@@ -33,6 +33,7 @@ import functools
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping
 from contextlib import contextmanager, nullcontext
 from pathlib import Path
@@ -65,7 +66,13 @@ from octolgp.mapping.evidence import (
 )
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads, leaves_read
-from octolgp.mapping.store import Leaf, LeafStore, MapStorage, ScanJournal
+from octolgp.mapping.store import (
+    STEP_BYTES_PER_HALO_VOXEL,
+    Leaf,
+    LeafStore,
+    MapStorage,
+    ScanJournal,
+)
 from octolgp.mapping.update import ScanUpdate
 from octolgp.mapping.workers import Workers, collector_paused
 from octolgp.memory import release_free_memory
@@ -89,6 +96,9 @@ in this process; each batch is stored (and written, uncommitted) before the next
 LOCAL_QUERY_POINTS = 65_536
 """A query at up to this many points fits only the pending leaves it reads; a larger
 one fits them all (working out which it reads would cost about as much)."""
+
+RESERVE_STEPS = 16
+"""Steps whose largest the memory budget keeps room for (:meth:`OnlineMap._reserve`)."""
 
 FIT_CHUNK = 2048
 """Leaves the engine fits per call: a step's or a settle's leaves are fitted in chunks
@@ -224,6 +234,7 @@ class OnlineMap(MapReads):
         self._closed = False
         self._broken: str | None = None  # why the map refuses every call
         self._writes = 0  # steps applied to the store
+        self._recent_touched: deque[int] = deque(maxlen=RESERVE_STEPS)  # leaves a step touched
         self.read_only = storage is not None and storage.read_only
         self._file: MapStorage | None = storage
         if storage is not None:
@@ -623,7 +634,8 @@ class OnlineMap(MapReads):
         else:
             fits = self._fit([leaf for _, leaf in evidence.changed], stages, fresh=evidence.fresh)
             fitted = [(k, f.leaf) for (k, _), f in zip(evidence.changed, fits, strict=True)]
-        # 3. the one write: store, file, then the sink
+        # 3. the one write: store, file, then the sink; the budget keeps room for a step
+        self._reserve(len(evidence.touched))
         t = time.perf_counter()
         self._write(
             [*fitted, *evidence.kept],
@@ -1156,6 +1168,21 @@ class OnlineMap(MapReads):
             self._writes += 1
             self._break("write", exc)
             raise
+
+    def _reserve(self, touched: int) -> None:
+        """Keep room in the budget for a step like the largest of the recent ones.
+
+        A step's working arrays scale with the leaves it touches
+        (:data:`~octolgp.mapping.store.STEP_BYTES_PER_HALO_VOXEL` per voxel of their halo
+        boxes); the store holds its leaves within the budget less the largest of the
+        last :data:`RESERVE_STEPS` steps', so that leaves and a step together stay
+        within the budget. The map does not depend on it.
+        """
+        if self.store.budget_bytes is None:
+            return
+        self._recent_touched.append(touched)
+        box = (self.grid.side + 2 * self.grid.halo_voxels) ** self.grid.dim
+        self.store.reserve_bytes = max(self._recent_touched) * box * STEP_BYTES_PER_HALO_VOXEL
 
     def _trim(self) -> None:
         """Trim the store to its budget, then hand the heap's free pages back.
