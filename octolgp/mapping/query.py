@@ -10,151 +10,39 @@ resident, so a query does not change which leaves stay in RAM either.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import addressable_mask, addressable_range
 from octolgp.gp.plsc import latent_occupancy
-from octolgp.mapping.grid import LeafGrid, group_keys
+from octolgp.mapping import coarse, distance, gradient, planning
+from octolgp.mapping.field import (
+    QUERY_CHUNK,
+    ReadableMap,
+    interpolate,
+    interpolate_latent,
+    leaves_read,
+    lookup,
+    query_points,
+)
+from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf, LeafStore
 from octolgp.scan import FloatArray, as_points
 
-
-def query_points(points: object, config: MapConfig) -> FloatArray:
-    """Validate query points: shape ``(q, d)``, finite, inside the addressable range.
-
-    Raises
-    ------
-    OctolgpError
-        Naming the first offending row.
-    """
-    X = as_points(points, "points", dim=config.dim)
-    inside = addressable_mask(X, config.resolution, config.tree_depth)
-    if not inside.all():
-        low, high = addressable_range(config.resolution, config.tree_depth)
-        row = int(np.flatnonzero(~inside)[0])
-        raise OctolgpError(
-            f"points row {row} ({X[row].tolist()}) is outside the addressable range "
-            f"[{low:g}, {high:g}) m"
-        )
-    return X
-
-
-QUERY_CHUNK = 1 << 16
-"""Points a query (:class:`MapReads`) handles at once: its temporaries (the ``2**d``
-corners of each point, their values, the probabilities) stay a few tens of megabytes
-whatever the query's size."""
-
-
-def lookup(
-    store: LeafStore, grid: LeafGrid, X: FloatArray, fields: tuple[str, ...]
-) -> list[FloatArray]:
-    """Stored voxel values (``fields`` of :class:`~octolgp.mapping.store.Leaf`) at points.
-
-    Parameters
-    ----------
-    store : LeafStore
-    grid : LeafGrid
-    X : ndarray of shape (q, d)
-        Validated points, metres, world frame.
-    fields : tuple of str
-        Among ``"mean"``, ``"var"``, ``"prob"``.
-
-    Returns
-    -------
-    list of ndarray of shape (q,)
-        One per field; NaN where no leaf holds a value for the point.
-    """
-    out = [np.full(X.shape[0], np.nan) for _ in fields]
-    if X.shape[0] == 0 or len(store) == 0:
-        return out
-    order, keys, bounds = group_keys(grid.pack(grid.leaf_of(X)))
-    key_list, size = keys.tolist(), store.batch
-    batch: list[Leaf | None] = []
-    for j in range(len(key_list)):  # one iteration per leaf queried
-        if j % size == 0:  # evicted leaves read and fitted a batch at a time
-            batch = store.peek_many(key_list[j : j + size])
-        leaf = batch[j % size]
-        if leaf is None or leaf.prob.size == 0:
-            continue
-        sel = order[bounds[j] : bounds[j + 1]]
-        flat = np.zeros(sel.size, dtype=np.int64)
-        if not leaf.pruned:
-            flat = grid.voxel_index(X[sel], leaf.index)
-        for arr, name in zip(out, fields, strict=True):
-            arr[sel] = getattr(leaf, name)[flat]
-    return out
-
-
-def interpolate(
-    store: LeafStore, grid: LeafGrid, config: MapConfig, prior: float, X: FloatArray
-) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """Multilinear interpolation of the voxel latent mean and variance at points.
-
-    The ``2**d`` voxel centres around each point are weighted by the usual
-    bilinear/trilinear weights; a corner no leaf holds (or outside the addressable
-    range) contributes the GP prior ``(0, prior)``.
-
-    Returns
-    -------
-    mean, var : ndarray of shape (q,)
-    known : ndarray of bool, shape (q,)
-        Points whose own voxel holds a value.
-    """
-    d = config.dim
-    res = config.resolution
-    (own,) = lookup(store, grid, X, ("mean",))
-    u = X / res - 0.5
-    base = np.floor(u)
-    frac = u - base
-    corners = np.array(list(np.ndindex(*(2,) * d)), dtype=np.float64)  # (2^d, d)
-    weights = np.prod(np.where(corners[:, None, :] == 1, frac, 1.0 - frac), axis=2)
-    centres = ((base[None, :, :] + corners[:, None, :] + 0.5) * res).reshape(-1, d)
-    inside = addressable_mask(centres, res, config.tree_depth)
-    mean = np.full(centres.shape[0], np.nan)
-    var = np.full(centres.shape[0], np.nan)
-    mean[inside], var[inside] = lookup(store, grid, centres[inside], ("mean", "var"))
-    known = ~np.isnan(mean)
-    mean = np.where(known, mean, 0.0).reshape(weights.shape)
-    var = np.where(known, var, prior).reshape(weights.shape)
-    return (weights * mean).sum(axis=0), (weights * var).sum(axis=0), ~np.isnan(own)
-
-
-class ReadableMap(Protocol):
-    """What a read needs of a map: its config, leaf grid, store and hyperparameters."""
-
-    config: MapConfig
-    grid: LeafGrid
-    store: LeafStore
-    hyperparameters: Hyperparameters | None
-
-
-def leaves_read(grid: LeafGrid, X: FloatArray) -> set[int]:
-    """Packed keys of every leaf a query at ``X`` may read (interpolated or not).
-
-    The ``2**d`` voxel centres around a point lie within one voxel of it, so their
-    leaves are those of the points moved by up to a voxel along each axis.
-    """
-    res = grid.resolution
-    low, high = grid.leaf_of(X - res), grid.leaf_of(X + res)
-    keys: set[int] = set()
-    for corner in itertools.product((0, 1), repeat=X.shape[1]):  # 4 or 8 corners
-        index = np.where(np.array(corner, dtype=bool), high, low)
-        keys.update(np.unique(grid.pack(index)).tolist())
-    return keys
-
-
-def interpolate_latent(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """Multilinear latent mean and variance of map ``m`` at points (see :func:`interpolate`)."""
-    prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
-    return interpolate(m.store, m.grid, m.config, prior, X)
+__all__ = [
+    "QUERY_CHUNK",
+    "MapReads",
+    "ReadableMap",
+    "interpolate",
+    "interpolate_latent",
+    "leaves_read",
+    "lookup",
+    "query_points",
+]
 
 
 class MapReads:
@@ -174,7 +62,9 @@ class MapReads:
         """The map one read comes from; ``points``: the read is a query at these points."""
         raise NotImplementedError
 
-    def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
+    def occupancy(
+        self, points: object, *, interpolate: bool = True, depth: int | None = None
+    ) -> FloatArray:
         """P(occupied) at query points.
 
         Parameters
@@ -188,6 +78,11 @@ class MapReads:
             into a probability; at a voxel centre this is the voxel's own value.
             ``False``: the stored value of the voxel holding the point (OctoMap's
             semantics, piecewise constant).
+        depth : int, optional
+            Octree depth in ``1..tree_depth`` (default: ``tree_depth``, the voxels).
+            Coarser, each point reads the node at that depth holding it, as
+            OctoMap's ``search(point, depth)``: the max P of the voxels inside the
+            node that hold a value (0.5 if none); ``interpolate`` is then unused.
 
         Returns
         -------
@@ -202,6 +97,10 @@ class MapReads:
             On a bad shape, a non-finite value or a point outside the addressable range.
         """
         X = query_points(points, self.config)
+        level = coarse.check_depth(depth, self.config)
+        if level < self.config.tree_depth:
+            with self._reading() as m:
+                return coarse.depth_occupancy(m, X, level)
         out = np.empty(X.shape[0])
         with self._reading(X) as m:
             hp = m.hyperparameters
@@ -260,22 +159,241 @@ class MapReads:
         with self._reading():
             return self.store.items() if self.hyperparameters is not None else iter(())
 
-    def voxels(self) -> tuple[FloatArray, FloatArray]:
+    def voxels(
+        self, *, depth: int | None = None, bbox: tuple[object, object] | None = None
+    ) -> tuple[FloatArray, FloatArray]:
         """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
 
         Voxels a leaf holds no value for (too far from any observation:
         ``LatticeConfig.fill_voxels``) are left out, as space outside every leaf is.
         Provisional while scans are buffered (see :attr:`provisional`).
 
+        Parameters
+        ----------
+        depth : int, optional
+            Octree depth in ``1..tree_depth`` (default ``tree_depth``: voxels).
+            Coarser, the nodes at that depth holding a voxel with a value, each with
+            the max P of its voxels (OctoMap's inner-node occupancy).
+        bbox : (lo, hi), optional
+            Box corners, each of shape (d,), metres, world frame, ``lo <= hi``: only
+            the cells (at ``depth``) that overlap the box, as OctoMap's
+            ``begin_leafs_bbx``, reading only the leaves that overlap it.
+
         Returns
         -------
         centres : ndarray of shape (k, d)
+            Cell centres (OctoMap's ``keyToCoord`` at ``depth``).
         prob : ndarray of shape (k,)
         """
+        if depth is not None or bbox is not None:
+            level = coarse.check_depth(depth, self.config)
+            lo, hi = self._bbox(bbox)
+            with self._reading() as m:
+                return coarse.box_voxels(m, lo, hi, level)
         chunks = list(self.voxel_chunks())
         if not chunks:
             return np.zeros((0, self.config.dim)), np.zeros(0)
         return np.concatenate([c for c, _ in chunks]), np.concatenate([p for _, p in chunks])
+
+    def _bbox(self, bbox: tuple[object, object] | None) -> tuple[FloatArray | None, ...]:
+        """Validated box corners ``lo, hi`` of shape (d,), or ``(None, None)``."""
+        if bbox is None:
+            return None, None
+        if not isinstance(bbox, tuple | list) or len(bbox) != 2:
+            raise OctolgpError("bbox must be a pair (lo, hi) of points of shape (d,)")
+        try:
+            corners = np.asarray(bbox, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise OctolgpError("bbox must be a pair (lo, hi) of points of shape (d,)") from None
+        if corners.shape != (2, self.config.dim):
+            raise OctolgpError(
+                f"bbox must be a pair (lo, hi) of points of shape ({self.config.dim},), "
+                f"got shape {corners.shape}"
+            )
+        lo, hi = query_points(corners, self.config)
+        if (lo > hi).any():
+            raise OctolgpError(f"bbox lo {lo.tolist()} must be <= hi {hi.tolist()} on every axis")
+        return lo, hi
+
+    def raycast(
+        self,
+        origins: object,
+        directions: object,
+        max_range: object,
+        threshold: float = 0.5,
+        *,
+        unknown: str = "stop",
+        step: float | None = None,
+    ) -> FloatArray:
+        """Distance along each ray to where P(occupied) first reaches ``threshold``.
+
+        The continuous field (:meth:`occupancy`, interpolated) is marched at steps of
+        at most half a voxel, all rays at once, and the first step that reaches the
+        threshold is refined by bisection to a thousandth of a voxel
+        (:func:`octolgp.mapping.planning.raycast`).
+
+        Parameters
+        ----------
+        origins : array_like of shape (n, d)
+            Ray origins, metres, world frame.
+        directions : array_like of shape (n, d)
+            Ray directions, world frame, not zero (normalised here).
+        max_range : float or array_like of shape (n,)
+            Metres (>= 0) along each ray.
+        threshold : float, optional
+            P(occupied) in (0, 1) that counts as a hit (0.5).
+        unknown : {"stop", "free", "occupied"}, optional
+            What a ray does on entering unknown space (a voxel with no value):
+            ``"stop"`` (default) ends it there with NaN, ``"free"`` lets it pass,
+            ``"occupied"`` makes it a hit there (a planner's conservative answer).
+        step : float, optional
+            Marching step, metres, in ``(0, resolution]`` (default half a voxel). A
+            crossing thinner than a step may be missed.
+
+        Returns
+        -------
+        ndarray of shape (n,)
+            Metres from each origin: the hit (0 when the origin is at or above the
+            threshold); ``inf`` when there is none up to ``max_range``; NaN when the
+            ray meets unknown space first (``unknown="stop"``).
+
+        Raises
+        ------
+        OctolgpError
+            Naming the bad argument (shape, non-finite value, zero direction, an
+            origin outside the addressable range, ``threshold``, ``unknown``).
+        """
+        start = query_points(origins, self.config)
+        heading = as_points(directions, "directions", dim=self.config.dim)
+        heading, reach = planning.check_rays(start, heading, max_range, self.config.dim)
+        thr = planning.check_threshold(threshold)
+        if unknown not in planning.UNKNOWN_MODES:
+            raise OctolgpError(
+                f"unknown must be one of {', '.join(planning.UNKNOWN_MODES)}, got {unknown!r}"
+            )
+        h = planning.check_step(step, self.config.resolution)
+        with self._reading() as m:
+            return planning.raycast(m, start, heading, reach, thr, unknown, h)
+
+    def segment_free(
+        self,
+        a: object,
+        b: object,
+        threshold: float = 0.5,
+        *,
+        unknown_is_free: bool = False,
+        step: float | None = None,
+    ) -> np.ndarray:
+        """Whether each straight segment ``a -> b`` stays below ``threshold`` all along.
+
+        The segment is sampled as :meth:`raycast` marches (at most half a voxel
+        apart, both ends included).
+
+        Parameters
+        ----------
+        a, b : array_like of shape (n, d)
+            Segment ends, metres, world frame.
+        threshold : float, optional
+            P(occupied) in (0, 1) that blocks a segment (0.5).
+        unknown_is_free : bool, optional
+            ``False`` (default): a segment through unknown space is not free.
+        step : float, optional
+            As in :meth:`raycast`.
+
+        Returns
+        -------
+        ndarray of bool, shape (n,)
+        """
+        ends_a = query_points(a, self.config)
+        ends_b = query_points(b, self.config)
+        if ends_a.shape != ends_b.shape:
+            raise OctolgpError(f"b must have the shape of a {ends_a.shape}, got {ends_b.shape}")
+        if not isinstance(unknown_is_free, bool):
+            raise OctolgpError(f"unknown_is_free must be a bool, got {unknown_is_free!r}")
+        thr = planning.check_threshold(threshold)
+        h = planning.check_step(step, self.config.resolution)
+        with self._reading() as m:
+            return planning.segment_free(m, ends_a, ends_b, thr, unknown_is_free, h)
+
+    def gradient(self, points: object) -> FloatArray:
+        """Gradient of P(occupied) (the interpolated :meth:`occupancy`) at points.
+
+        Analytic: the derivative of the multilinear latent mean and variance through
+        PLSC (:mod:`octolgp.mapping.gradient`), so it is the derivative of what
+        :meth:`occupancy` reads.
+
+        Parameters
+        ----------
+        points : array_like of shape (q, d)
+            World frame, metres.
+
+        Returns
+        -------
+        ndarray of shape (q, d)
+            ``∂P/∂x`` per metre along the world axes; points into obstacles. 0
+            where the point's voxel is unknown (there P is the constant 0.5).
+        """
+        X = query_points(points, self.config)
+        with self._reading(X) as m:
+            return gradient.occupancy_gradient(m, X)
+
+    def latent_gradient(self, points: object) -> tuple[FloatArray, FloatArray]:
+        """Gradients of the interpolated latent mean and variance (:meth:`latent`).
+
+        Returns
+        -------
+        grad_mean, grad_var : ndarray of shape (q, d)
+            Per metre along the world axes; 0 where the point's voxel is unknown.
+        """
+        X = query_points(points, self.config)
+        with self._reading(X) as m:
+            _, _, g_mean, g_var, known = gradient.latent_gradient(m, X)
+        return np.where(known[:, None], g_mean, 0.0), np.where(known[:, None], g_var, 0.0)
+
+    def normals(self, points: object) -> FloatArray:
+        """Unit normals ``-∇P / |∇P|`` (:meth:`gradient`), pointing out of obstacles.
+
+        Returns
+        -------
+        ndarray of shape (q, d)
+            NaN where the gradient is 0.
+        """
+        g = self.gradient(points)
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(norm > 0, -g / norm, np.nan)
+
+    def distance(
+        self, points: object, threshold: float = 0.5, *, max_distance: float | None = None
+    ) -> FloatArray:
+        """Distance from each point to the nearest occupied voxel (P >= ``threshold``).
+
+        Exact to the union of the occupied voxels' cubes (KD-tree over their
+        centres, :mod:`octolgp.mapping.distance`); within a voxel diagonal of the
+        distance to the observed surfaces.
+
+        Parameters
+        ----------
+        points : array_like of shape (q, d)
+            World frame, metres.
+        threshold : float, optional
+            In (0, 1); a voxel whose stored P(occupied) reaches it is occupied.
+        max_distance : float, optional
+            Metres > 0: farther answers are ``inf``, and only the voxels in the
+            points' bounding box grown by it are read (faster on a large map).
+            Default: no bound (every voxel is read).
+
+        Returns
+        -------
+        ndarray of shape (q,)
+            Metres; 0 inside an occupied voxel; ``inf`` when there is none (within
+            ``max_distance``).
+        """
+        X = query_points(points, self.config)
+        thr = planning.check_threshold(threshold)
+        limit = distance.check_max_distance(max_distance)
+        with self._reading() as m:
+            return distance.occupied_distance(m, X, thr, limit)
 
     def voxel_chunks(self, size: int = QUERY_CHUNK) -> Iterator[tuple[FloatArray, FloatArray]]:
         """:meth:`voxels` in chunks of about ``size`` voxels, leaf by leaf in key order.

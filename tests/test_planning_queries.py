@@ -1,0 +1,310 @@
+"""Planning queries: raycast, segment checks, gradients, distance, coarse-depth and box reads.
+
+Each is checked against a brute-force answer from the map's own reads on small maps
+built from simulated scans (the 2D paper world, the 3D lidar room): raycast and
+segment checks against dense sampling of ``occupancy`` along the ray, gradients
+against central finite differences, distance against every occupied voxel cube,
+depth reads against OctoMap's max-of-children definition.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from octolgp import Hyperparameters, MapConfig, OctolgpError, OnlineMap
+from octolgp.geometry.keys import pack_keys
+from octolgp.sim.lidar3d import simulate_lidar_room
+from octolgp.sim.scenes import simulate_paper2d
+
+HP2 = Hyperparameters(length_scale=0.4, signal_variance=1.0, noise_variance=0.01, alpha=5.0)
+HP3 = Hyperparameters(length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0)
+DENSE = 5e-4
+"""Spacing, metres, of the brute-force samples along a ray."""
+
+
+@pytest.fixture(scope="module")
+def map2d() -> OnlineMap:
+    data = simulate_paper2d(0, noise=False, n_poses=14, n_beams=90)
+    m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP2))
+    m.insert_scans(data.scans)
+    return m
+
+
+@pytest.fixture(scope="module")
+def map3d() -> OnlineMap:
+    room = simulate_lidar_room(2, seed=3, n_azimuth=256, n_elevation=16, max_range=20.0)
+    m = OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=HP3))
+    m.insert_scans([s.downsample(0.2) for s in room.scans()])
+    return m
+
+
+@pytest.fixture(params=["2d", "3d"])
+def any_map(request: pytest.FixtureRequest, map2d: OnlineMap, map3d: OnlineMap) -> OnlineMap:
+    return map2d if request.param == "2d" else map3d
+
+
+def rays(m: OnlineMap, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rays from known free voxels near the middle of the map, in random directions."""
+    rng = np.random.default_rng(seed)
+    centres, prob = m.voxels()
+    free = centres[prob < 0.2]
+    middle = np.median(free, axis=0)
+    near = free[np.argsort(np.linalg.norm(free - middle, axis=1))[: 50 * n]]
+    origins = near[rng.choice(near.shape[0], n, replace=False)]
+    origins = origins + rng.uniform(-0.3, 0.3, origins.shape) * m.config.resolution
+    u = rng.normal(size=origins.shape)
+    return origins, u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def dense_first_event(
+    m: OnlineMap, o: np.ndarray, u: np.ndarray, max_range: float, unknown: str
+) -> np.ndarray:
+    """Brute force: the first of dense samples along each ray where the ray stops."""
+    s = np.arange(0.0, max_range + DENSE / 2, DENSE)
+    out = np.full(o.shape[0], np.inf)
+    for i in range(o.shape[0]):  # a test's brute force: one ray at a time
+        pts = o[i] + s[:, None] * u[i]
+        prob = m.occupancy(pts)
+        known = m.occupancy(pts, interpolate=False) != 0.5
+        event = np.where(known, prob >= 0.5, unknown != "free")
+        if event.any():
+            j = int(np.argmax(event))
+            out[i] = s[j] if known[j] or unknown == "occupied" else np.nan
+    return out
+
+
+@pytest.mark.parametrize("unknown", ["stop", "free", "occupied"])
+def test_raycast_matches_dense_sampling_of_occupancy(any_map: OnlineMap, unknown: str) -> None:
+    m = any_map
+    o, u = rays(m, 40, seed=1)
+    max_range = 6.0 if m.config.dim == 2 else 8.0
+    got = m.raycast(o, u, max_range, unknown=unknown)
+    want = dense_first_event(m, o, u, max_range, unknown)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+    hit = np.isfinite(want)
+    assert hit.sum() >= (3 if unknown == "stop" else 10)  # the rays do reach surfaces
+    # bisection to a thousandth of a voxel; the dense samples lie DENSE apart
+    np.testing.assert_allclose(got[hit], want[hit], atol=DENSE + 1e-3 * m.config.resolution)
+    # at each hit the field reaches the threshold, just before it it does not
+    known_hits = hit & ~np.isnan(got) & (got > 0)
+    at = o[known_hits] + got[known_hits, None] * u[known_hits]
+    assert (m.occupancy(at) >= 0.5).all() or unknown != "free"
+
+
+def test_raycast_modes_differ_where_rays_meet_unknown_space(map3d: OnlineMap) -> None:
+    """Rays into unobserved space: NaN (stop), a hit where it starts (occupied), or pass."""
+    o, u = rays(map3d, 40, seed=2)
+    stop = map3d.raycast(o, u, 30.0)
+    occ = map3d.raycast(o, u, 30.0, unknown="occupied")
+    free = map3d.raycast(o, u, 30.0, unknown="free")
+    assert 0 < np.isnan(stop).sum() < stop.size
+    np.testing.assert_array_equal(np.isnan(stop), np.isfinite(occ) & (occ != free))
+    np.testing.assert_array_equal(stop[~np.isnan(stop)], free[~np.isnan(stop)])
+    assert not np.isnan(occ).any() and not np.isnan(free).any()
+    assert (occ <= free).all()
+    short = map3d.raycast(o, u, 0.01)  # nothing within a centimetre of free origins
+    assert np.isinf(short).all()
+    assert (map3d.raycast(o, u, 0.0) == np.inf).all()
+
+
+def test_raycast_from_inside_an_obstacle_is_zero(any_map: OnlineMap) -> None:
+    centres, prob = any_map.voxels()
+    inside = centres[prob > 0.9][:5]
+    d = any_map.raycast(inside, np.ones_like(inside), 3.0)
+    np.testing.assert_array_equal(d, 0.0)
+
+
+def test_segment_free_matches_dense_sampling(any_map: OnlineMap) -> None:
+    m = any_map
+    o, u = rays(m, 60, seed=3)
+    rng = np.random.default_rng(4)
+    b = o + u * rng.uniform(0.2, 4.0, (o.shape[0], 1))
+    for unknown_is_free in (False, True):
+        got = m.segment_free(o, b, unknown_is_free=unknown_is_free)
+        mode = "free" if unknown_is_free else "occupied"
+        length = np.linalg.norm(b - o, axis=1)
+        want = np.array(
+            [
+                np.isinf(dense_first_event(m, o[i : i + 1], u[i : i + 1], length[i], mode)[0])
+                for i in range(o.shape[0])
+            ]
+        )
+        np.testing.assert_array_equal(got, want)
+        assert 0 < got.sum() < got.size  # some free, some blocked
+    np.testing.assert_array_equal(m.segment_free(o, o), True)  # zero-length segments
+
+
+def fd_points(m: OnlineMap, n: int, seed: int) -> np.ndarray:
+    """Points in known space near surfaces, away from cell faces and the unknown edge."""
+    rng = np.random.default_rng(seed)
+    res = m.config.resolution
+    centres, prob = m.voxels()
+    edge = centres[(prob > 0.05) & (prob < 0.95)]
+    p = edge[rng.choice(edge.shape[0], 4 * n, replace=False)]
+    p = p + rng.uniform(-0.4, 0.4, p.shape) * res
+    frac = (p / res - 0.5) % 1.0
+    ok = ((frac > 0.02) & (frac < 0.98)).all(axis=1)
+    # the whole 2**d cell of voxel centres around the point holds values
+    corners = np.array(list(np.ndindex(*(2,) * m.config.dim)))
+    base = np.floor(p / res - 0.5)
+    cell = ((base[:, None, :] + corners[None] + 0.5) * res).reshape(-1, m.config.dim)
+    held = (m.occupancy(cell, interpolate=False) != 0.5).reshape(p.shape[0], -1).all(axis=1)
+    return p[ok & held][:n]
+
+
+def test_gradient_matches_central_differences_of_occupancy(any_map: OnlineMap) -> None:
+    m = any_map
+    p = fd_points(m, 200, seed=5)
+    assert p.shape[0] >= 100
+    h = 1e-6
+    eye = np.eye(m.config.dim)
+    fd = np.stack(
+        [(m.occupancy(p + h * e) - m.occupancy(p - h * e)) / (2 * h) for e in eye], axis=1
+    )
+    g = m.gradient(p)
+    assert np.abs(g).max() > 1.0  # steep near surfaces: per metre
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-5)
+    g_mean, g_var = m.latent_gradient(p)
+    for k, grad in enumerate((g_mean, g_var)):
+        fd_latent = np.stack(
+            [(m.latent(p + h * e)[k] - m.latent(p - h * e)[k]) / (2 * h) for e in eye], axis=1
+        )
+        np.testing.assert_allclose(grad, fd_latent, rtol=1e-4, atol=1e-5)
+
+
+def test_normals_point_out_of_obstacles(any_map: OnlineMap) -> None:
+    m = any_map
+    p = fd_points(m, 100, seed=6)
+    n = m.normals(p)
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+    step = 0.2 * m.config.resolution
+    assert (m.occupancy(p + step * n) < m.occupancy(p)).mean() > 0.95
+
+
+def test_gradient_is_zero_in_unknown_space(any_map: OnlineMap) -> None:
+    far = np.full((3, any_map.config.dim), 500.0)
+    np.testing.assert_array_equal(any_map.gradient(far), 0.0)
+    assert np.isnan(any_map.normals(far)).all()
+
+
+def brute_distance(m: OnlineMap, X: np.ndarray, threshold: float) -> np.ndarray:
+    """Distance from each point to every occupied voxel's cube, the minimum."""
+    centres, prob = m.voxels()
+    cubes = centres[prob >= threshold]
+    half = m.config.resolution / 2
+    out = np.empty(X.shape[0])
+    for i in range(X.shape[0]):  # a test's brute force: one point at a time
+        gap = np.maximum(np.abs(cubes - X[i]) - half, 0.0)
+        out[i] = np.sqrt((gap * gap).sum(axis=1)).min()
+    return out
+
+
+@pytest.mark.parametrize("threshold", [0.5, 0.8])
+def test_distance_matches_brute_force(any_map: OnlineMap, threshold: float) -> None:
+    m = any_map
+    rng = np.random.default_rng(7)
+    centres, _ = m.voxels()
+    lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
+    X = np.concatenate([rng.uniform(lo, hi, (300, m.config.dim)), centres[::97]])
+    want = brute_distance(m, X, threshold)
+    got = m.distance(X, threshold)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+    assert (got == 0).any() and (got > 1.0).any()
+    capped = m.distance(X, threshold, max_distance=0.7)
+    np.testing.assert_array_equal(capped, np.where(want <= 0.7, got, np.inf))
+
+
+def test_distance_of_an_empty_map_is_inf() -> None:
+    m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP2))
+    np.testing.assert_array_equal(m.distance([[0.0, 0.0]]), np.inf)
+
+
+def octomap_max_of_children(
+    m: OnlineMap, X: np.ndarray, depth: int
+) -> tuple[np.ndarray, dict[int, float]]:
+    """OctoMap's node value at ``depth``: the max over the voxels below it, by brute force."""
+    centres, prob = m.voxels()
+    c = m.config
+    edge = c.resolution * 2 ** (c.tree_depth - depth)
+    origin = -(2 ** (c.tree_depth - 1)) * c.resolution
+    nodes: dict[int, float] = {}
+    for key, p in zip(pack_keys(np.floor((centres - origin) / edge).astype(np.int64)), prob):
+        nodes[int(key)] = max(nodes.get(int(key), 0.0), float(p))
+    keys = pack_keys(np.floor((X - origin) / edge).astype(np.int64))
+    return np.array([nodes.get(int(k), 0.5) for k in keys]), nodes
+
+
+@pytest.mark.parametrize("coarser", [1, 2, 4, 6])
+def test_occupancy_and_voxels_at_depth_are_octomap_max_of_children(
+    any_map: OnlineMap, coarser: int
+) -> None:
+    m = any_map
+    depth = m.config.tree_depth - coarser
+    rng = np.random.default_rng(8)
+    centres, _ = m.voxels()
+    X = rng.uniform(centres.min(axis=0) - 2, centres.max(axis=0) + 2, (2000, m.config.dim))
+    want, nodes = octomap_max_of_children(m, X, depth)
+    np.testing.assert_array_equal(m.occupancy(X, depth=depth), want)
+    assert (want == 0.5).any() and (want > 0.9).any()
+    c, p = m.voxels(depth=depth)
+    edge = m.config.resolution * 2**coarser
+    origin = -(2 ** (m.config.tree_depth - 1)) * m.config.resolution
+    got = dict(zip(pack_keys(np.floor((c - origin) / edge).astype(np.int64)).tolist(), p))
+    assert got == nodes
+    np.testing.assert_allclose((c - origin) / edge % 1.0, 0.5)  # node centres
+    # a voxel-depth read is the voxels' own read
+    np.testing.assert_array_equal(
+        m.occupancy(X, depth=m.config.tree_depth), m.occupancy(X, interpolate=True)
+    )
+
+
+@pytest.mark.parametrize("depth", [None, 13])
+def test_box_read_is_the_cells_overlapping_the_box(any_map: OnlineMap, depth: int | None) -> None:
+    m = any_map
+    centres, _ = m.voxels(depth=depth)
+    lo = np.quantile(centres, 0.3, axis=0) + 0.013
+    hi = np.quantile(centres, 0.6, axis=0) - 0.011
+    c, p = m.voxels(depth=depth, bbox=(lo, hi))
+    all_c, all_p = m.voxels(depth=depth)
+    res = m.config.resolution * 2 ** (m.config.tree_depth - (depth or m.config.tree_depth))
+    overlap = ((all_c + res / 2 > lo) & (all_c - res / 2 <= hi)).all(axis=1)
+    assert 0 < overlap.sum() < all_c.shape[0]
+    order = np.lexsort(c.T)
+    want = np.lexsort(all_c[overlap].T)
+    np.testing.assert_array_equal(c[order], all_c[overlap][want])
+    np.testing.assert_array_equal(p[order], all_p[overlap][want])
+
+
+@pytest.mark.parametrize(
+    ("call", "field"),
+    [
+        (lambda m: m.raycast([[0.0, 0.0]], [[0.0, 0.0]], 1.0), "directions"),
+        (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0, 0.0]], 1.0), "directions"),
+        (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], -1.0), "max_range"),
+        (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], np.inf), "max_range"),
+        (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], [1.0, 2.0]), "max_range"),
+        (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], 1.0, 1.0), "threshold"),
+        (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], 1.0, unknown="maybe"), "unknown"),
+        (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], 1.0, step=0.5), "step"),
+        (lambda m: m.raycast([[np.nan, 0.0]], [[1.0, 0.0]], 1.0), "points"),
+        (lambda m: m.raycast([[1e9, 0.0]], [[1.0, 0.0]], 1.0), "addressable"),
+        (lambda m: m.segment_free([[0.0, 0.0]], [[1.0, 0.0], [2.0, 0.0]]), "b must"),
+        (
+            lambda m: m.segment_free([[0.0, 0.0]], [[1.0, 0.0]], unknown_is_free=1),
+            "unknown_is_free",
+        ),
+        (lambda m: m.distance([[0.0, 0.0]], max_distance=0), "max_distance"),
+        (lambda m: m.distance([[0.0, 0.0]], threshold=True), "threshold"),
+        (lambda m: m.occupancy([[0.0, 0.0]], depth=0), "depth"),
+        (lambda m: m.occupancy([[0.0, 0.0]], depth=17), "depth"),
+        (lambda m: m.voxels(depth=2.0), "depth"),
+        (lambda m: m.voxels(bbox=([0.0, 0.0], [1.0])), "bbox"),
+        (lambda m: m.voxels(bbox=([1.0, 1.0], [0.0, 2.0])), "bbox"),
+        (lambda m: m.gradient([[0.0, 0.0, 0.0]]), "points"),
+    ],
+)
+def test_bad_inputs_name_the_field(map2d: OnlineMap, call: object, field: str) -> None:
+    with pytest.raises(OctolgpError, match=field):
+        call(map2d)  # type: ignore[operator]
