@@ -102,7 +102,8 @@ def test_raycast_modes_differ_where_rays_meet_unknown_space(map3d: OnlineMap) ->
     assert 0 < np.isnan(stop).sum() < stop.size
     np.testing.assert_array_equal(np.isnan(stop), np.isfinite(occ) & (occ != free))
     np.testing.assert_array_equal(stop[~np.isnan(stop)], free[~np.isnan(stop)])
-    assert not np.isnan(occ).any() and not np.isnan(free).any()
+    assert not np.isnan(occ).any()
+    assert not np.isnan(free).any()
     assert (occ <= free).all()
     short = map3d.raycast(o, u, 0.01)  # nothing within a centimetre of free origins
     assert np.isinf(short).all()
@@ -211,7 +212,8 @@ def test_distance_matches_brute_force(any_map: OnlineMap, threshold: float) -> N
     want = brute_distance(m, X, threshold)
     got = m.distance(X, threshold)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
-    assert (got == 0).any() and (got > 1.0).any()
+    assert (got == 0).any()
+    assert (got > 1.0).any()
     capped = m.distance(X, threshold, max_distance=0.7)
     np.testing.assert_array_equal(capped, np.where(want <= 0.7, got, np.inf))
 
@@ -230,7 +232,9 @@ def octomap_max_of_children(
     edge = c.resolution * 2 ** (c.tree_depth - depth)
     origin = -(2 ** (c.tree_depth - 1)) * c.resolution
     nodes: dict[int, float] = {}
-    for key, p in zip(pack_keys(np.floor((centres - origin) / edge).astype(np.int64)), prob):
+    for key, p in zip(
+        pack_keys(np.floor((centres - origin) / edge).astype(np.int64)), prob, strict=True
+    ):
         nodes[int(key)] = max(nodes.get(int(key), 0.0), float(p))
     keys = pack_keys(np.floor((X - origin) / edge).astype(np.int64))
     return np.array([nodes.get(int(k), 0.5) for k in keys]), nodes
@@ -247,11 +251,14 @@ def test_occupancy_and_voxels_at_depth_are_octomap_max_of_children(
     X = rng.uniform(centres.min(axis=0) - 2, centres.max(axis=0) + 2, (2000, m.config.dim))
     want, nodes = octomap_max_of_children(m, X, depth)
     np.testing.assert_array_equal(m.occupancy(X, depth=depth), want)
-    assert (want == 0.5).any() and (want > 0.9).any()
+    assert (want == 0.5).any()
+    assert (want > 0.9).any()
     c, p = m.voxels(depth=depth)
     edge = m.config.resolution * 2**coarser
     origin = -(2 ** (m.config.tree_depth - 1)) * m.config.resolution
-    got = dict(zip(pack_keys(np.floor((c - origin) / edge).astype(np.int64)).tolist(), p))
+    got = dict(
+        zip(pack_keys(np.floor((c - origin) / edge).astype(np.int64)).tolist(), p, strict=True)
+    )
     assert got == nodes
     np.testing.assert_allclose((c - origin) / edge % 1.0, 0.5)  # node centres
     # a voxel-depth read is the voxels' own read
