@@ -9,6 +9,9 @@ depth reads against OctoMap's max-of-children definition.
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -295,8 +298,9 @@ def test_box_read_is_the_cells_overlapping_the_box(any_map: OnlineMap, depth: in
         (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], 1.0, 1.0), "threshold"),
         (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], 1.0, unknown="maybe"), "unknown"),
         (lambda m: m.raycast([[0.0, 0.0]], [[1.0, 0.0]], 1.0, step=0.5), "step"),
-        (lambda m: m.raycast([[np.nan, 0.0]], [[1.0, 0.0]], 1.0), "points"),
-        (lambda m: m.raycast([[1e9, 0.0]], [[1.0, 0.0]], 1.0), "addressable"),
+        (lambda m: m.raycast([[np.nan, 0.0]], [[1.0, 0.0]], 1.0), "origins"),
+        (lambda m: m.raycast([[1e9, 0.0]], [[1.0, 0.0]], 1.0), "origins row 0 .* addressable"),
+        (lambda m: m.segment_free([[0.0, 0.0]], [[np.inf, 0.0]]), "^b "),
         (lambda m: m.segment_free([[0.0, 0.0]], [[1.0, 0.0], [2.0, 0.0]]), "b must"),
         (
             lambda m: m.segment_free([[0.0, 0.0]], [[1.0, 0.0]], unknown_is_free=1),
@@ -315,3 +319,70 @@ def test_box_read_is_the_cells_overlapping_the_box(any_map: OnlineMap, depth: in
 def test_bad_inputs_name_the_field(map2d: OnlineMap, call: object, field: str) -> None:
     with pytest.raises(OctolgpError, match=field):
         call(map2d)  # type: ignore[operator]
+
+
+@pytest.fixture(scope="module")
+def map_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("cli") / "paper.octolgp"
+    data = simulate_paper2d(0, noise=False, n_poses=14, n_beams=90)
+    with OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP2), path=path) as m:
+        m.insert_scans(data.scans)
+    return path
+
+
+def test_cli_query_raycast_and_distance_write_npy_and_csv(
+    map_file: Path, map2d: OnlineMap, tmp_path: Path
+) -> None:
+    from octolgp.cli.main import main
+
+    o, u = rays(map2d, 30, seed=9)
+    np.save(tmp_path / "rays.npy", np.hstack([o, 3.0 * u]))  # directions need not be unit
+    np.save(tmp_path / "pts.npy", o)
+    argv = ["query", str(map_file), "--raycast", str(tmp_path / "rays.npy"), "--max-range", "5"]
+    assert main([*argv, "--out", str(tmp_path / "hits.npy")]) == 0
+    want = map2d.raycast(o, u, 5.0)
+    np.testing.assert_allclose(np.load(tmp_path / "hits.npy"), want, rtol=1e-12, atol=1e-12)
+    assert np.isfinite(want).sum() >= 5
+    assert main([*argv, "--unknown", "occupied", "--out", str(tmp_path / "hits.csv")]) == 0
+    csv = np.loadtxt(tmp_path / "hits.csv", skiprows=1)
+    want = map2d.raycast(o, u, 5.0, unknown="occupied")
+    np.testing.assert_allclose(csv, want, rtol=1e-8)
+    assert (tmp_path / "hits.csv").read_text().splitlines()[0] == "distance"
+    dist = ["query", str(map_file), "--distance", str(tmp_path / "pts.npy")]
+    assert main([*dist, "--out", str(tmp_path / "d.npy"), "--max-distance", "2"]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "d.npy"), map2d.distance(o, max_distance=2.0))
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--raycast", "rays.npy", "--out", "h.npy"], "--max-range"),
+        (["--raycast", "pts.npy", "--max-range", "5", "--out", "h.npy"], r"--raycast .*\(n, 4\)"),
+        (["--raycast", "zero.npy", "--max-range", "5", "--out", "h.npy"], "--raycast: directions"),
+        (["--raycast", "rays.npy", "--max-range", "-1", "--out", "h.npy"], "max_range"),
+        (["--raycast", "missing.npy", "--max-range", "5", "--out", "h.npy"], "--raycast"),
+        (["--distance", "rays.npy", "--out", "d.npy"], "--distance: points must have shape"),
+        (["--distance", "pts.npy", "--max-distance", "0", "--out", "d.npy"], "max_distance"),
+        (["--distance", "pts.npy", "--max-range", "2", "--out", "d.npy"], "--max-range"),
+        (["--points", "pts.npy", "--max-distance", "2", "--out", "d.npy"], "--max-distance"),
+        (["--distance", "pts.npy", "--out", "d.txt"], "--out"),
+        (["--distance", "pts.npy", "--nearest", "--out", "d.npy"], "--nearest"),
+    ],
+)
+def test_cli_query_bad_input_exits_2_naming_the_field(
+    map_file: Path,
+    tmp_path: Path,
+    argv: list[str],
+    message: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    from octolgp.cli.main import main
+
+    np.save(tmp_path / "rays.npy", np.array([[0.5, 0.5, 1.0, 0.0]]))
+    np.save(tmp_path / "zero.npy", np.array([[0.5, 0.5, 0.0, 0.0]]))
+    np.save(tmp_path / "pts.npy", np.array([[0.5, 0.5]]))
+    here = [str(tmp_path / a) if a.endswith((".npy", ".txt")) else a for a in argv]
+    assert main(["query", str(map_file), *here]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert re.search(message, err[0])

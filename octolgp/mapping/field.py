@@ -23,21 +23,21 @@ from octolgp.mapping.store import Leaf, LeafStore
 from octolgp.scan import FloatArray, as_points
 
 
-def query_points(points: object, config: MapConfig) -> FloatArray:
+def query_points(points: object, config: MapConfig, name: str = "points") -> FloatArray:
     """Validate query points: shape ``(q, d)``, finite, inside the addressable range.
 
     Raises
     ------
     OctolgpError
-        Naming the first offending row.
+        Naming the argument (``name``) and the first offending row.
     """
-    X = as_points(points, "points", dim=config.dim)
+    X = as_points(points, name, dim=config.dim)
     inside = addressable_mask(X, config.resolution, config.tree_depth)
     if not inside.all():
         low, high = addressable_range(config.resolution, config.tree_depth)
         row = int(np.flatnonzero(~inside)[0])
         raise OctolgpError(
-            f"points row {row} ({X[row].tolist()}) is outside the addressable range "
+            f"{name} row {row} ({X[row].tolist()}) is outside the addressable range "
             f"[{low:g}, {high:g}) m"
         )
     return X

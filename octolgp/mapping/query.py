@@ -210,7 +210,7 @@ class MapReads:
                 f"bbox must be a pair (lo, hi) of points of shape ({self.config.dim},), "
                 f"got shape {corners.shape}"
             )
-        lo, hi = query_points(corners, self.config)
+        lo, hi = query_points(corners, self.config, "bbox")
         if (lo > hi).any():
             raise OctolgpError(f"bbox lo {lo.tolist()} must be <= hi {hi.tolist()} on every axis")
         return lo, hi
@@ -263,7 +263,7 @@ class MapReads:
             Naming the bad argument (shape, non-finite value, zero direction, an
             origin outside the addressable range, ``threshold``, ``unknown``).
         """
-        start = query_points(origins, self.config)
+        start = query_points(origins, self.config, "origins")
         heading = as_points(directions, "directions", dim=self.config.dim)
         heading, reach = planning.check_rays(start, heading, max_range, self.config.dim)
         thr = planning.check_threshold(threshold)
@@ -304,8 +304,8 @@ class MapReads:
         -------
         ndarray of bool, shape (n,)
         """
-        ends_a = query_points(a, self.config)
-        ends_b = query_points(b, self.config)
+        ends_a = query_points(a, self.config, "a")
+        ends_b = query_points(b, self.config, "b")
         if ends_a.shape != ends_b.shape:
             raise OctolgpError(f"b must have the shape of a {ends_a.shape}, got {ends_b.shape}")
         if not isinstance(unknown_is_free, bool):
