@@ -386,3 +386,20 @@ def test_cli_query_bad_input_exits_2_naming_the_field(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
     assert re.search(message, err[0])
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_raycast_reads_the_same_from_a_voxel_table_as_from_the_store(
+    any_map: OnlineMap, monkeypatch: pytest.MonkeyPatch, dense: bool
+) -> None:
+    """Many rays read a table of the voxels (dense or by key); few read the store: one answer."""
+    from octolgp.mapping import voxel_table
+
+    o, u = rays(any_map, 60, seed=10)
+    monkeypatch.setattr(voxel_table, "LOOKUPS_PER_VOXEL", 0.0)  # always a table
+    monkeypatch.setattr(voxel_table, "DENSE_FILL", 0.0 if dense else 2.0)
+    table = [any_map.raycast(o, u, 6.0, unknown=mode) for mode in ("stop", "free", "occupied")]
+    monkeypatch.setattr(voxel_table, "LOOKUPS_PER_VOXEL", np.inf)  # never
+    store = [any_map.raycast(o, u, 6.0, unknown=mode) for mode in ("stop", "free", "occupied")]
+    for a, b in zip(table, store, strict=True):
+        np.testing.assert_array_equal(a, b)

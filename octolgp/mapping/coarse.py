@@ -23,7 +23,7 @@ from octolgp.mapping.field import ReadableMap
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
 
-__all__ = ["box_voxels", "check_depth", "depth_occupancy", "node_keys"]
+__all__ = ["box_voxels", "check_depth", "depth_occupancy", "leaves_in_box", "node_keys"]
 
 
 def check_depth(depth: object, config: MapConfig) -> int:
@@ -75,6 +75,22 @@ def _stored_leaves(m: ReadableMap) -> tuple[IntArray, IntArray]:
     return packed, unpack_keys(packed, m.config.dim)
 
 
+def leaves_in_box(m: ReadableMap, lo: FloatArray, hi: FloatArray, depth: int) -> list[int]:
+    """Packed keys (ascending) of the map's leaves under the cells that overlap a box.
+
+    The cells are those at ``depth`` overlapping the box ``lo, hi`` (metres,
+    addressable).
+    """
+    config = m.config
+    packed, index = _stored_leaves(m)
+    node_lo, node_hi = node_keys(np.stack([lo, hi]), config, depth)
+    shift = config.tree_depth - depth
+    vox_lo, vox_hi = node_lo << shift, ((node_hi + 1) << shift) - 1  # voxel keys
+    leaf_shift = m.grid.shift
+    inside = ((index >= vox_lo >> leaf_shift) & (index <= vox_hi >> leaf_shift)).all(axis=1)
+    return [int(k) for k in packed[inside]]
+
+
 def _coarsen(
     centres: FloatArray, prob: FloatArray, config: MapConfig, depth: int
 ) -> tuple[IntArray, FloatArray]:
@@ -110,19 +126,14 @@ def box_voxels(
     prob : ndarray of shape (k,)
     """
     config = m.config
-    packed, index = _stored_leaves(m)
     if lo is not None and hi is not None:
         node_lo, node_hi = node_keys(np.stack([lo, hi]), config, depth)
-        shift = config.tree_depth - depth
-        vox_lo, vox_hi = node_lo << shift, ((node_hi + 1) << shift) - 1  # voxel keys
-        leaf_shift = m.grid.shift
-        inside = ((index >= vox_lo >> leaf_shift) & (index <= vox_hi >> leaf_shift)).all(axis=1)
-        centres, prob = _leaf_voxels(m, packed[inside].tolist())
+        centres, prob = _leaf_voxels(m, leaves_in_box(m, lo, hi, depth))
         keys = node_keys(centres, config, depth)
         keep = ((keys >= node_lo) & (keys <= node_hi)).all(axis=1)
         centres, prob = centres[keep], prob[keep]
     else:
-        centres, prob = _leaf_voxels(m, packed.tolist())
+        centres, prob = _leaf_voxels(m, list(m.store))
     if depth == config.tree_depth:
         return centres, prob
     nodes, pmax = _coarsen(centres, prob, config, depth)

@@ -10,6 +10,7 @@ the stored voxel values (:func:`lookup`) and their multilinear interpolation
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -89,10 +90,23 @@ def lookup(
     return out
 
 
+Reader = Callable[[FloatArray, tuple[str, ...]], list[FloatArray]]
+"""Stored voxel values at points, as :func:`lookup` (NaN where none): ``read(X, fields)``."""
+
+
+def store_reader(store: LeafStore, grid: LeafGrid) -> Reader:
+    """:func:`lookup` on a store, as a :data:`Reader`."""
+
+    def read(X: FloatArray, fields: tuple[str, ...]) -> list[FloatArray]:
+        return lookup(store, grid, X, fields)
+
+    return read
+
+
 def corner_latent(
-    store: LeafStore, grid: LeafGrid, config: MapConfig, prior: float, X: FloatArray
+    read: Reader, config: MapConfig, prior: float, X: FloatArray
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray, np.ndarray]:
-    """The ``2**d`` voxel centres around each point and their latent values.
+    """The ``2**d`` voxel centres around each point and their latent values (from ``read``).
 
     Returns
     -------
@@ -109,7 +123,7 @@ def corner_latent(
     """
     d = config.dim
     res = config.resolution
-    (own,) = lookup(store, grid, X, ("mean",))
+    (own,) = read(X, ("mean",))
     u = X / res - 0.5
     base = np.floor(u)
     frac = u - base
@@ -118,7 +132,7 @@ def corner_latent(
     inside = addressable_mask(centres, res, config.tree_depth)
     mean = np.full(centres.shape[0], np.nan)
     var = np.full(centres.shape[0], np.nan)
-    mean[inside], var[inside] = lookup(store, grid, centres[inside], ("mean", "var"))
+    mean[inside], var[inside] = read(centres[inside], ("mean", "var"))
     held = ~np.isnan(mean)
     shape = (corners.shape[0], X.shape[0])
     corner_mean: FloatArray = np.where(held, mean, 0.0).reshape(shape)
@@ -146,7 +160,7 @@ def interpolate(
     known : ndarray of bool, shape (q,)
         Points whose own voxel holds a value.
     """
-    frac, corners, mean, var, known = corner_latent(store, grid, config, prior, X)
+    frac, corners, mean, var, known = corner_latent(store_reader(store, grid), config, prior, X)
     weights = corner_weights(frac, corners)
     return (weights * mean).sum(axis=0), (weights * var).sum(axis=0), known
 
@@ -185,7 +199,9 @@ def interpolate_latent(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, Float
     return interpolate(m.store, m.grid, m.config, prior_variance(m), X)
 
 
-def occupancy_field(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, np.ndarray]:
+def occupancy_field(
+    m: ReadableMap, X: FloatArray, read: Reader | None = None
+) -> tuple[FloatArray, np.ndarray]:
     """P(occupied) as :meth:`~octolgp.mapping.query.MapReads.occupancy` reads it, anywhere.
 
     Parameters
@@ -194,6 +210,9 @@ def occupancy_field(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, np.ndarr
     X : ndarray of shape (q, d)
         Finite points, metres, world frame; points outside the addressable range
         read as unknown.
+    read : Reader, optional
+        Where the voxel values come from: the map's store (default), or a table of
+        them (:class:`~octolgp.mapping.voxel_table.VoxelTable`), the same values.
 
     Returns
     -------
@@ -208,14 +227,30 @@ def occupancy_field(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, np.ndarr
     known = np.zeros(X.shape[0], dtype=bool)
     inside = np.flatnonzero(addressable_mask(X, res, depth))
     hp = m.hyperparameters
+    reader = store_reader(m.store, m.grid) if read is None else read
     for lo in range(0, inside.size, QUERY_CHUNK):  # bounded temporaries, chunk by chunk
         at = inside[lo : lo + QUERY_CHUNK]
         if hp is None:
-            (p,) = lookup(m.store, m.grid, X[at], ("prob",))
+            (p,) = reader(X[at], ("prob",))
             held = ~np.isnan(p)
         else:
-            mean, var, held = interpolate_latent(m, X[at])
-            p = latent_occupancy(mean, var, hp)
+            frac, corners, mc, vc, held = corner_latent(reader, m.config, hp.signal_variance, X[at])
+            w = corner_weights(frac, corners)
+            p = latent_occupancy((w * mc).sum(axis=0), (w * vc).sum(axis=0), hp)
         prob[at] = np.where(held, p, 0.5)
         known[at] = held
     return prob, known
+
+
+def held_at(m: ReadableMap, X: FloatArray, read: Reader | None = None) -> np.ndarray:
+    """Whether the voxel holding each point ``(q, d)`` holds a value (bool, (q,)).
+
+    ``False`` outside the addressable range; ``read`` as in :func:`occupancy_field`.
+    """
+    reader = store_reader(m.store, m.grid) if read is None else read
+    held = np.zeros(X.shape[0], dtype=bool)
+    inside = np.flatnonzero(addressable_mask(X, m.config.resolution, m.config.tree_depth))
+    for lo in range(0, inside.size, QUERY_CHUNK):  # bounded temporaries, chunk by chunk
+        at = inside[lo : lo + QUERY_CHUNK]
+        held[at] = ~np.isnan(reader(X[at], ("mean",))[0])
+    return held

@@ -33,6 +33,7 @@ from octolgp.mapping.field import (
     corner_latent,
     corner_weights,
     prior_variance,
+    store_reader,
 )
 from octolgp.scan import FloatArray
 
@@ -60,7 +61,8 @@ def latent_gradient(
         Points whose own voxel holds a value.
     """
     res = m.config.resolution
-    frac, corners, mc, vc, known = corner_latent(m.store, m.grid, m.config, prior_variance(m), X)
+    read = store_reader(m.store, m.grid)
+    frac, corners, mc, vc, known = corner_latent(read, m.config, prior_variance(m), X)
     w = corner_weights(frac, corners)
     upper = corners[:, None, :] == 1  # (2^d, 1, d)
     factors = np.where(upper, frac, 1.0 - frac)  # (2^d, q, d): each axis's weight

@@ -25,7 +25,9 @@ import math
 import numpy as np
 
 from octolgp.errors import OctolgpError
-from octolgp.mapping.field import QUERY_CHUNK, ReadableMap, occupancy_field
+from octolgp.geometry.keys import addressable_range
+from octolgp.mapping.field import QUERY_CHUNK, ReadableMap, Reader, held_at, occupancy_field
+from octolgp.mapping.voxel_table import table_pays, voxel_table
 from octolgp.scan import FloatArray
 
 __all__ = ["MAX_BLOCK_STEPS", "UNKNOWN_MODES", "raycast", "segment_free"]
@@ -41,10 +43,10 @@ BISECTION_TOL = 1e-3
 
 
 def _events(
-    m: ReadableMap, X: FloatArray, threshold: float, stop_unknown: bool
+    m: ReadableMap, X: FloatArray, threshold: float, stop_unknown: bool, read: Reader | None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Where a ray stops at ``X``: ``(event, known)``, both bool of shape (q,)."""
-    prob, known = occupancy_field(m, X)
+    prob, known = occupancy_field(m, X, read)
     event = np.where(known, prob >= threshold, stop_unknown)
     return event, known
 
@@ -90,8 +92,9 @@ def raycast(
     out = np.full(n, np.inf)
     if n == 0:
         return out
+    read = _reader(m, origins, directions, max_range, step)
     # the origins first: a ray starting in an obstacle (or unknown space) stops at 0
-    event, known = _events(m, origins, threshold, stop_unknown)
+    event, known = _events(m, origins, threshold, stop_unknown, read)
     out[event] = np.where(known[event] | (unknown == "occupied"), 0.0, np.nan)
     active = np.flatnonzero(~event & (max_range > 0))
     done = np.zeros(0, dtype=np.int64)
@@ -99,52 +102,76 @@ def raycast(
     lo_s, hi_s = np.zeros(n), np.zeros(n)
     res = m.config.resolution
     while active.size:  # one block of steps for every ray still marching
-        steps = int(np.clip(QUERY_CHUNK // (3 * active.size), 4, MAX_BLOCK_STEPS))
-        s = block_samples(
-            origins[active], directions[active], s0[active], max_range[active], step, steps, res
-        )  # (a, k): every voxel the block passes through holds a sample
-        pts = origins[active, None, :] + s[:, :, None] * directions[active, None, :]
-        ev, _ = _events(m, pts.reshape(-1, pts.shape[2]), threshold, stop_unknown)
-        ev = ev.reshape(s.shape)
-        hit = ev.any(axis=1)
-        first = np.argmax(ev, axis=1)
-        rows = np.arange(active.size)
-        prev = np.where(first > 0, s[rows, np.maximum(first - 1, 0)], s0[active])
-        lo_s[active[hit]], hi_s[active[hit]] = prev[hit], s[rows, first][hit]
+        steps = int(np.clip(QUERY_CHUNK // active.size, 4, MAX_BLOCK_STEPS))
+        o, u, start = origins[active], directions[active], s0[active]
+        end = np.minimum(start + steps * step, max_range[active])
+        ticks = np.minimum(start[:, None] + step * np.arange(1, steps + 1), end[:, None])
+        ev = _events(m, _along(o, u, ticks), threshold, stop_unknown, read)[0]
+        ev = ev.reshape(ticks.shape)
+        first = np.where(ev.any(axis=1), ticks[np.arange(ticks.shape[0]), np.argmax(ev, 1)], np.inf)
+        if stop_unknown:  # a sample in every voxel passed: unknown ones are never skipped
+            mids = voxel_samples(o, u, start, end, res)
+            unknown_here = ~held_at(m, _along(o, u, mids), read).reshape(mids.shape)
+            first_unknown = np.where(unknown_here, mids, np.inf).min(axis=1)
+            first = np.minimum(first, first_unknown)
+        hit = np.isfinite(first)
+        below = np.where(ticks < first[:, None], ticks, -np.inf).max(axis=1)
+        lo_s[active[hit]] = np.maximum(below, start)[hit]
+        hi_s[active[hit]] = first[hit]
         done = np.concatenate([done, active[hit]])
-        end = s[:, -1] >= max_range[active]
-        s0[active] = s[:, -1]
-        active = active[~hit & ~end]
+        s0[active] = end
+        active = active[~hit & (end < max_range[active])]
     if done.size:
-        out[done] = _bisect(
-            m, origins[done], directions[done], lo_s[done], hi_s[done], threshold, unknown, step
-        )
+        rays = (origins[done], directions[done], lo_s[done], hi_s[done])
+        out[done] = _bisect(m, *rays, threshold, unknown, step, read)
     return out
 
 
-def block_samples(
+def _reader(
+    m: ReadableMap,
+    origins: FloatArray,
+    directions: FloatArray,
+    max_range: FloatArray,
+    step: float,
+) -> Reader | None:
+    """A table of the voxels the rays may read when it pays (else ``None``: the store)."""
+    if origins.shape[0] == 0:
+        return None
+    res = m.config.resolution
+    low, high = addressable_range(res, m.config.tree_depth)
+    ends = origins + max_range[:, None] * directions
+    lo = np.maximum(np.minimum(origins, ends).min(axis=0) - res, low)
+    hi = np.minimum(np.maximum(origins, ends).max(axis=0) + res, high - 1e-6 * res)
+    corners = (1 << origins.shape[1]) + 4  # reads per step: the cell's corners, its own, voxels
+    samples = float(np.sum(max_range)) / step
+    if not table_pays(m, lo, hi, samples * corners):
+        return None
+    return voxel_table(m, lo, hi).read
+
+
+def _along(origins: FloatArray, directions: FloatArray, s: FloatArray) -> FloatArray:
+    """Points ``(a * k, d)`` at distances ``s`` ``(a, k)`` along rays ``(a, d)``."""
+    pts = origins[:, None, :] + s[:, :, None] * directions[:, None, :]
+    return np.asarray(pts.reshape(-1, origins.shape[1]))
+
+
+def voxel_samples(
     origins: FloatArray,
     directions: FloatArray,
     start: FloatArray,
-    max_range: FloatArray,
-    step: float,
-    steps: int,
+    end: FloatArray,
     resolution: float,
 ) -> FloatArray:
-    """Distances ``(a, k)``, ascending, at which a block of ray marching reads the field.
+    """Distances ``(a, k)``: one in every voxel each ray passes through on ``(start, end]``.
 
-    The block runs from ``start`` (read already) to ``min(start + steps * step,
-    max_range)``. Its breakpoints are ``start``, the steps and every crossing of a voxel
-    face (planes ``x_j = i * resolution``); the samples are the midpoints of
-    consecutive breakpoints and the block's end. So consecutive samples lie at most
-    a step apart, and every voxel the ray passes through over a length > 0 holds a
-    sample: an unknown voxel is never stepped over.
+    The midpoints of consecutive crossings of voxel faces (planes ``x_j = i *
+    resolution``), with ``start`` and ``end`` among them, and ``end`` itself; a voxel
+    the ray only touches at a corner or an edge (length 0) has none. Rows are padded
+    with ``end``.
     """
-    end = np.minimum(start + steps * step, max_range)
-    ticks = np.minimum(start[:, None] + step * np.arange(1, steps + 1)[None, :], end[:, None])
-    planes = math.ceil(steps * step / resolution) + 1  # face crossings per axis, at most
+    planes = math.ceil(float(np.max(end - start, initial=0.0)) / resolution) + 1
     k = np.arange(planes)[None, :]
-    crossings = [ticks]
+    crossings = [start[:, None], end[:, None]]
     for j in range(origins.shape[1]):  # one axis at a time (2 or 3)
         o, u = origins[:, j : j + 1], directions[:, j : j + 1]
         x = (o + start[:, None] * u) / resolution  # in voxels
@@ -154,7 +181,7 @@ def block_samples(
         crossings.append(
             np.where((u != 0) & (t > start[:, None]), np.minimum(t, end[:, None]), end[:, None])
         )
-    bp = np.sort(np.concatenate([start[:, None], *crossings], axis=1), axis=1)
+    bp = np.sort(np.concatenate(crossings, axis=1), axis=1)
     return np.concatenate([0.5 * (bp[:, :-1] + bp[:, 1:]), bp[:, -1:]], axis=1)
 
 
@@ -167,6 +194,7 @@ def _bisect(
     threshold: float,
     unknown: str,
     step: float,
+    read: Reader | None,
 ) -> FloatArray:
     """Narrow brackets ``[lo, hi]`` (no event at ``lo``, one at ``hi``) to the event.
 
@@ -177,10 +205,10 @@ def _bisect(
     width = BISECTION_TOL * m.config.resolution
     for _ in range(max(1, math.ceil(math.log2(max(step, width) / width)))):  # ~9 halvings
         mid = 0.5 * (lo + hi)
-        ev, _ = _events(m, origins + mid[:, None] * directions, threshold, stop_unknown)
+        ev, _ = _events(m, origins + mid[:, None] * directions, threshold, stop_unknown, read)
         hi = np.where(ev, mid, hi)
         lo = np.where(ev, lo, mid)
-    _, known = _events(m, origins + hi[:, None] * directions, threshold, stop_unknown)
+    _, known = _events(m, origins + hi[:, None] * directions, threshold, stop_unknown, read)
     if unknown == "stop":
         return np.where(known, hi, np.nan)
     return hi
