@@ -403,3 +403,49 @@ def test_raycast_reads_the_same_from_a_voxel_table_as_from_the_store(
     store = [any_map.raycast(o, u, 6.0, unknown=mode) for mode in ("stop", "free", "occupied")]
     for a, b in zip(table, store, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_surface_vertices_lie_on_the_level_set_and_faces_face_out(any_map: OnlineMap) -> None:
+    m = any_map
+    v, f = m.surface()
+    d = m.config.dim
+    assert v.shape[1] == d
+    assert f.shape[1] == d
+    assert f.shape[0] > 500
+    np.testing.assert_allclose(m.occupancy(v), 0.5, atol=5e-3)
+    assert f.min() >= 0
+    assert f.max() < v.shape[0]
+    if d == 3:
+        a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+        normal, mid = np.cross(b - a, c - a), (a + b + c) / 3
+        edges = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    else:
+        a, b = v[f[:, 0]], v[f[:, 1]]
+        normal, mid = np.c_[(b - a)[:, 1], -(b - a)[:, 0]], (a + b) / 2
+        edges = f.reshape(-1, 1)
+    assert (np.linalg.norm(normal, axis=1) > 0).all()  # no degenerate face
+    assert ((normal * m.gradient(mid)).sum(axis=1) < 0).mean() > 0.99  # out of obstacles
+    _, uses = np.unique(edges, axis=0, return_counts=True)
+    assert uses.max() == 2  # no crack, no fold: a face edge is shared by at most two faces
+    if d == 2:  # the paper's world is closed: every polyline is a loop
+        assert (uses == 2).all()
+    lo, hi = np.quantile(v, 0.3, axis=0), np.quantile(v, 0.7, axis=0)
+    vb, _ = m.surface(bbox=(lo, hi))
+    assert 0 < vb.shape[0] < v.shape[0]
+
+
+def test_export_writes_the_surface_as_obj_and_ply(map_file: Path, tmp_path: Path) -> None:
+    from octolgp.cli.main import main
+
+    assert main(["export", str(map_file), "--out", str(tmp_path / "s.obj")]) == 0
+    lines = (tmp_path / "s.obj").read_text().splitlines()
+    with OnlineMap.open(map_file, read_only=True) as m:
+        v, f = m.surface()
+    assert sum(line.startswith("v ") for line in lines) == v.shape[0]
+    assert sum(line.startswith("l ") for line in lines) == f.shape[0]
+    assert main(["export", str(map_file), "--out", str(tmp_path / "s.ply"), "--mesh"]) == 0
+    head = (tmp_path / "s.ply").read_bytes().split(b"end_header\n")
+    assert f"element vertex {v.shape[0]}".encode() in head[0]
+    assert f"element edge {f.shape[0]}".encode() in head[0]
+    assert len(head[1]) == v.shape[0] * 12 + f.shape[0] * 8
+    assert main(["export", str(map_file), "--out", str(tmp_path / "s.png"), "--mesh"]) == 2

@@ -114,6 +114,7 @@ def planning_reads(m: OnlineMap) -> None:
     m.occupancy(PROBE, depth=13)
     m.voxels(depth=14)
     m.voxels(bbox=([-1.0, -1.0], [1.0, 1.0]))
+    m.surface()
 
 
 def test_provisional_answer_before_any_training_data_is_the_prior() -> None:

@@ -273,13 +273,20 @@ def make_parser() -> argparse.ArgumentParser:
     query.set_defaults(func=cmd_query)
 
     export = sub.add_parser(
-        "export", help="export a map file to OctoMap, PLY, PCD, PNG or a nav2 map (PGM + YAML)"
+        "export",
+        help="export a map file to OctoMap, PLY, PCD, PNG, a nav2 map (PGM + YAML) or a mesh (OBJ)",
     )
     export.add_argument("map", help="map file written by run or replay")
     export.add_argument(
         "--out",
         required=True,
-        help="FILE.bt | FILE.ot | FILE.ply | FILE.pcd | FILE.png | FILE.pgm (nav2: with FILE.yaml)",
+        help="FILE.bt | FILE.ot | FILE.ply | FILE.pcd | FILE.png | FILE.pgm (nav2: with FILE.yaml)"
+        " | FILE.obj (the P = --threshold level set as a mesh)",
+    )
+    export.add_argument(
+        "--mesh",
+        action="store_true",
+        help="FILE.ply: the level set as a mesh (3D triangles, 2D segments), not voxel centres",
     )
     export.add_argument(
         "--threshold", type=_probability, default=0.5, help="occupied above this P, in (0, 1)"

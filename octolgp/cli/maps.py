@@ -171,9 +171,21 @@ def cmd_export(args: argparse.Namespace) -> int:
     from octolgp.mapping.online import OnlineMap
 
     out = Path(args.out)
-    kinds = (".bt", ".ot", ".ply", ".pcd", ".png", ".pgm")
+    kinds = (".bt", ".ot", ".ply", ".pcd", ".png", ".pgm", ".obj")
     if out.suffix not in kinds:
         raise OctolgpError(f"--out must end in one of {', '.join(kinds)}, got {str(out)!r}")
+    if args.mesh and out.suffix not in (".ply", ".obj"):
+        raise OctolgpError("--mesh applies to --out FILE.ply or FILE.obj only")
+    if args.mesh or out.suffix == ".obj":
+        from octolgp.export.mesh import write_mesh
+
+        check_outputs(args.overwrite, out)
+        with OnlineMap.open(args.map, read_only=True) as m:
+            vertices, faces = m.surface(args.threshold)
+        write_mesh(out, vertices, faces)
+        kind = "triangles" if vertices.shape[1] == 3 else "segments"
+        print(f"wrote {out}: {vertices.shape[0]} vertices, {faces.shape[0]} {kind}")
+        return 0
     z_range = args.z_range
     if z_range is not None and out.suffix != ".pgm":
         raise OctolgpError("--z-range applies to a nav2 map (--out FILE.pgm) only")

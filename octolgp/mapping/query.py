@@ -395,6 +395,38 @@ class MapReads:
         with self._reading() as m:
             return distance.occupied_distance(m, X, thr, limit)
 
+    def surface(
+        self, threshold: float = 0.5, *, bbox: tuple[object, object] | None = None
+    ) -> tuple[FloatArray, np.ndarray]:
+        """The level set ``P(occupied) = threshold`` as a mesh (3D) or polyline (2D).
+
+        Marching tetrahedra (triangles in 2D) on the lattice of voxel centres, each
+        vertex placed where :meth:`occupancy` crosses the threshold along its lattice
+        edge, to a thousandth of a voxel (:mod:`octolgp.mapping.surface`). Space next
+        to unknown voxels has no surface.
+
+        Parameters
+        ----------
+        threshold : float, optional
+            In (0, 1).
+        bbox : (lo, hi), optional
+            Mesh only the cells whose lower corner lies in this box (metres).
+
+        Returns
+        -------
+        vertices : ndarray of shape (v, d)
+            Metres, world frame.
+        faces : ndarray of int64, shape (f, d)
+            Triangles (3D) with normals (right-hand rule) pointing out of obstacles,
+            or segments (2D) with the obstacle on their left.
+        """
+        from octolgp.mapping.surface import level_set
+
+        thr = planning.check_threshold(threshold)
+        lo, hi = self._bbox(bbox)
+        with self._reading() as m:
+            return level_set(m, thr, lo, hi)
+
     def voxel_chunks(self, size: int = QUERY_CHUNK) -> Iterator[tuple[FloatArray, FloatArray]]:
         """:meth:`voxels` in chunks of about ``size`` voxels, leaf by leaf in key order.
 
