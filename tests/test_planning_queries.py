@@ -449,3 +449,26 @@ def test_export_writes_the_surface_as_obj_and_ply(map_file: Path, tmp_path: Path
     assert f"element edge {f.shape[0]}".encode() in head[0]
     assert len(head[1]) == v.shape[0] * 12 + f.shape[0] * 8
     assert main(["export", str(map_file), "--out", str(tmp_path / "s.png"), "--mesh"]) == 2
+
+
+def test_the_path_check_example_finds_the_robots_own_legs_free() -> None:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": str(root)}  # this checkout's octolgp
+    out = subprocess.run(
+        [sys.executable, str(root / "examples" / "path_check.py"), "--limit", "80"],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=root,
+        env=env,
+    ).stdout
+    legs = re.search(r"trajectory legs: (\d+) of (\d+) free", out)
+    assert legs is not None
+    assert int(legs.group(1)) >= 0.9 * int(legs.group(2)) > 0
+    shortcuts = re.search(r"shortcuts from the start: (\d+) of (\d+) free", out)
+    assert shortcuts is not None
+    assert int(shortcuts.group(1)) < int(shortcuts.group(2))  # some cross a wall
