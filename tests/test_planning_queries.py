@@ -472,3 +472,25 @@ def test_the_path_check_example_finds_the_robots_own_legs_free() -> None:
     shortcuts = re.search(r"shortcuts from the start: (\d+) of (\d+) free", out)
     assert shortcuts is not None
     assert int(shortcuts.group(1)) < int(shortcuts.group(2))  # some cross a wall
+
+
+def test_a_map_under_a_memory_budget_answers_the_same(map2d: OnlineMap, tmp_path: Path) -> None:
+    """Evicted leaves are read back for the queries (and stay evicted): the same answers."""
+    data = simulate_paper2d(0, noise=False, n_poses=14, n_beams=90)
+    config = MapConfig(dim=2, resolution=0.1, hyperparameters=HP2, memory_budget_mb=0.3)
+    with OnlineMap(config, path=tmp_path / "budget.octolgp") as m:
+        m.insert_scans(data.scans)
+        m.settle()
+        assert m.store.resident < len(m.store)  # some leaves live only in the file
+        o, u = rays(map2d, 30, seed=11)
+        X = o + 0.5 * u
+        np.testing.assert_array_equal(m.raycast(o, u, 6.0), map2d.raycast(o, u, 6.0))
+        np.testing.assert_array_equal(m.segment_free(o, X), map2d.segment_free(o, X))
+        np.testing.assert_array_equal(m.gradient(X), map2d.gradient(X))
+        np.testing.assert_array_equal(m.distance(X), map2d.distance(X))
+        np.testing.assert_array_equal(m.occupancy(X, depth=12), map2d.occupancy(X, depth=12))
+        for a, b in zip(m.surface(), map2d.surface(), strict=True):
+            np.testing.assert_array_equal(a, b)
+        resident = m.store.resident
+        m.distance(X)
+        assert m.store.resident == resident  # reads do not change which leaves stay in RAM

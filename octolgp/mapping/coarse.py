@@ -161,16 +161,13 @@ def depth_occupancy(m: ReadableMap, X: FloatArray, depth: int) -> FloatArray:
     nodes = node_keys(X, config, depth)
     wanted = np.unique(pack_keys(nodes))
     leaf_depth = config.tree_depth - m.grid.shift
+    stored, index = _stored_leaves(m)
     if depth >= leaf_depth:  # each node lies inside one leaf
-        leaves = unpack_keys(wanted, dim) >> (depth - leaf_depth)
-    else:  # each node covers 2**(leaf_depth - depth) leaves per axis
-        span = 1 << (leaf_depth - depth)
-        offsets = np.stack(np.meshgrid(*([np.arange(span)] * dim), indexing="ij"), -1)
-        base = unpack_keys(wanted, dim) << (leaf_depth - depth)
-        leaves = (base[:, None, :] + offsets.reshape(1, -1, dim)).reshape(-1, dim)
-    stored, _ = _stored_leaves(m)
-    candidates = np.unique(pack_keys(leaves))
-    centres, prob = _leaf_voxels(m, candidates[np.isin(candidates, stored)].tolist())
+        candidates = np.unique(pack_keys(unpack_keys(wanted, dim) >> (depth - leaf_depth)))
+        read = candidates[np.isin(candidates, stored)]
+    else:  # a node covers many leaves: those whose node at this depth is wanted
+        read = stored[np.isin(pack_keys(index >> (leaf_depth - depth)), wanted)]
+    centres, prob = _leaf_voxels(m, read.tolist())
     have, pmax = _coarsen(centres, prob, config, depth)
     if have.size == 0:
         return np.full(X.shape[0], 0.5)
