@@ -19,11 +19,18 @@ import numpy as np
 from octolgp.config import MapConfig
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import pack_keys, unpack_keys
-from octolgp.mapping.field import ReadableMap
+from octolgp.mapping.field import ReadableMap, query_points
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
 
-__all__ = ["box_voxels", "check_depth", "depth_occupancy", "leaves_in_box", "node_keys"]
+__all__ = [
+    "box_voxels",
+    "check_bbox",
+    "check_depth",
+    "depth_occupancy",
+    "leaves_in_box",
+    "node_keys",
+]
 
 
 def check_depth(depth: object, config: MapConfig) -> int:
@@ -174,3 +181,33 @@ def depth_occupancy(m: ReadableMap, X: FloatArray, depth: int) -> FloatArray:
     packed = pack_keys(nodes)
     at = np.minimum(np.searchsorted(have, packed), have.size - 1)
     return np.where(have[at] == packed, pmax[at], 0.5)
+
+
+def check_bbox(
+    bbox: tuple[object, object] | None, config: MapConfig
+) -> tuple[FloatArray | None, FloatArray | None]:
+    """Validated box corners ``lo, hi`` of shape (d,), or ``(None, None)`` for ``None``.
+
+    Raises
+    ------
+    OctolgpError
+        Naming ``bbox``: not a pair of points of shape (d,), non-finite, outside the
+        addressable range, or ``lo > hi`` on an axis.
+    """
+    if bbox is None:
+        return None, None
+    if not isinstance(bbox, tuple | list) or len(bbox) != 2:
+        raise OctolgpError("bbox must be a pair (lo, hi) of points of shape (d,)")
+    try:
+        corners = np.asarray(bbox, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise OctolgpError("bbox must be a pair (lo, hi) of points of shape (d,)") from None
+    if corners.shape != (2, config.dim):
+        raise OctolgpError(
+            f"bbox must be a pair (lo, hi) of points of shape ({config.dim},), "
+            f"got shape {corners.shape}"
+        )
+    lo, hi = query_points(corners, config, "bbox")
+    if (lo > hi).any():
+        raise OctolgpError(f"bbox lo {lo.tolist()} must be <= hi {hi.tolist()} on every axis")
+    return lo, hi
