@@ -2,9 +2,10 @@
 
 The reads of :class:`~octolgp.mapping.query.MapReads` and the planning queries built
 on them (:mod:`octolgp.mapping.planning`, :mod:`octolgp.mapping.gradient`,
-:mod:`octolgp.mapping.distance`, :mod:`octolgp.mapping.coarse`, :mod:`octolgp.mapping.surface`) come from here:
-the stored voxel values (:func:`lookup`) and their multilinear interpolation
-(:func:`interpolate`). Every function only reads the store.
+:mod:`octolgp.mapping.distance`, :mod:`octolgp.mapping.coarse`,
+:mod:`octolgp.mapping.surface`) come from here: the stored voxel values
+(:func:`lookup`) and their multilinear interpolation (:func:`interpolate`). Every
+function only reads the store.
 """
 
 from __future__ import annotations

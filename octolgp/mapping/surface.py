@@ -19,6 +19,8 @@ case table, at the cost of about twice as many triangles.
 
 from __future__ import annotations
 
+from types import MappingProxyType
+
 import numpy as np
 
 from octolgp.geometry.keys import addressable_range, unpack_keys
@@ -33,12 +35,12 @@ VERTEX_TOL = 1e-3
 """Width, in voxels, that bisection narrows each vertex's edge bracket to."""
 
 # Cell corners as bits (x = 1, y = 2, z = 4); simplices along the diagonal 0 -> 2**d - 1.
-_SIMPLICES = {
-    2: np.array([[0, 1, 3], [0, 3, 2]]),
-    3: np.array(
-        [[0, 1, 3, 7], [0, 3, 2, 7], [0, 2, 6, 7], [0, 6, 4, 7], [0, 4, 5, 7], [0, 5, 1, 7]]
-    ),
-}
+_SIMPLICES = MappingProxyType(
+    {
+        2: ((0, 1, 3), (0, 3, 2)),
+        3: ((0, 1, 3, 7), (0, 3, 2, 7), (0, 2, 6, 7), (0, 6, 4, 7), (0, 4, 5, 7), (0, 5, 1, 7)),
+    }
+)
 
 
 def level_set(
@@ -73,7 +75,7 @@ def level_set(
     inside_box = ((centres_all >= lo) & (centres_all <= hi)).all(axis=1)
     base = centres_all[known & inside_box]  # each known centre is a cell's lower corner
     offsets = np.array(list(np.ndindex(*(2,) * d)))[:, ::-1]  # bit j of the index is axis j
-    simplices = _SIMPLICES[d]
+    simplices = np.array(_SIMPLICES[d])
     edge_a: list[FloatArray] = []
     edge_b: list[FloatArray] = []
     pieces: list[tuple[IntArray, IntArray, np.ndarray]] = []
@@ -172,7 +174,7 @@ def _faces(
     return np.concatenate(tri) if tri else np.zeros((0, 3), dtype=np.int64)
 
 
-_EDGES3 = [(0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)]
+_EDGES3 = ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3))
 
 
 def _quad_order(above: IntArray) -> IntArray:
