@@ -494,3 +494,19 @@ def test_a_map_under_a_memory_budget_answers_the_same(map2d: OnlineMap, tmp_path
         resident = m.store.resident
         m.distance(X)
         assert m.store.resident == resident  # reads do not change which leaves stay in RAM
+
+
+def test_large_queries_in_chunks_answer_as_one(
+    map3d: OnlineMap, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Rays and distance points run in bounded chunks: the same answers as in one piece."""
+    from octolgp.mapping import distance, planning
+
+    o, u = rays(map3d, 50, seed=12)
+    X = o + u
+    whole = (map3d.raycast(o, u, 8.0), map3d.distance(X))
+    monkeypatch.setattr(planning, "RAY_CHUNK", 7)
+    monkeypatch.setattr(distance, "QUERY_CHUNK", 9)
+    parts = (map3d.raycast(o, u, 8.0), map3d.distance(X))
+    for a, b in zip(whole, parts, strict=True):
+        np.testing.assert_array_equal(a, b)

@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import addressable_range
 from octolgp.mapping.coarse import box_voxels
-from octolgp.mapping.field import ReadableMap
+from octolgp.mapping.field import QUERY_CHUNK, ReadableMap
 from octolgp.scan import FloatArray
 
 __all__ = ["check_max_distance", "cube_distance", "occupied_distance"]
@@ -103,7 +103,9 @@ def occupied_distance(
     cubes = centres[prob >= threshold]
     if cubes.shape[0] == 0:
         return out
-    out = nearest_cube(cKDTree(cubes), cubes, X, 0.5 * res)
+    tree = cKDTree(cubes)
+    for lo in range(0, X.shape[0], QUERY_CHUNK):  # bounded temporaries, chunk by chunk
+        out[lo : lo + QUERY_CHUNK] = nearest_cube(tree, cubes, X[lo : lo + QUERY_CHUNK], 0.5 * res)
     return np.where(out <= max_distance, out, np.inf)
 
 

@@ -38,6 +38,9 @@ UNKNOWN_MODES = ("stop", "free", "occupied")
 MAX_BLOCK_STEPS = 256
 """Most steps a ray marches in one block: rays that hit early stop costing early."""
 
+RAY_CHUNK = 1 << 14
+"""Rays marched together: the temporaries of a block stay tens of megabytes."""
+
 BISECTION_TOL = 1e-3
 """Width, in voxels, that bisection narrows each first bracket to."""
 
@@ -87,12 +90,31 @@ def raycast(
         below the threshold up to ``max_range``; NaN where the ray enters unknown
         space first and ``unknown == "stop"``.
     """
+    out = np.full(origins.shape[0], np.inf)
+    if origins.shape[0] == 0:
+        return out
+    read = _reader(m, origins, directions, max_range, step)
+    for lo in range(0, origins.shape[0], RAY_CHUNK):  # bounded temporaries, chunk by chunk
+        at = slice(lo, lo + RAY_CHUNK)
+        rays = (origins[at], directions[at], max_range[at])
+        out[at] = _march(m, *rays, threshold, unknown, step, read)
+    return out
+
+
+def _march(
+    m: ReadableMap,
+    origins: FloatArray,
+    directions: FloatArray,
+    max_range: FloatArray,
+    threshold: float,
+    unknown: str,
+    step: float,
+    read: Reader | None,
+) -> FloatArray:
+    """:func:`raycast` of one chunk of rays, reading the voxels through ``read``."""
     n = origins.shape[0]
     stop_unknown = unknown != "free"
     out = np.full(n, np.inf)
-    if n == 0:
-        return out
-    read = _reader(m, origins, directions, max_range, step)
     # the origins first: a ray starting in an obstacle (or unknown space) stops at 0
     event, known = _events(m, origins, threshold, stop_unknown, read)
     out[event] = np.where(known[event] | (unknown == "occupied"), 0.0, np.nan)
