@@ -367,6 +367,8 @@ def test_cli_query_raycast_and_distance_write_npy_and_csv(
         (["--points", "pts.npy", "--max-distance", "2", "--out", "d.npy"], "--max-distance"),
         (["--distance", "pts.npy", "--out", "d.txt"], "--out"),
         (["--distance", "pts.npy", "--nearest", "--out", "d.npy"], "--nearest"),
+        (["--distance", "pts.npy", "--unknown", "free", "--out", "d.npy"], "--unknown"),
+        (["--points", "pts.npy", "--threshold", "0.7", "--out", "d.npy"], "--threshold"),
     ],
 )
 def test_cli_query_bad_input_exits_2_naming_the_field(

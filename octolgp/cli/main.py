@@ -254,13 +254,11 @@ def make_parser() -> argparse.ArgumentParser:
     query.add_argument(
         "--threshold",
         type=_probability,
-        default=0.5,
         help="--raycast, --distance: P(occupied) that counts as an obstacle (default 0.5)",
     )
     query.add_argument(
         "--unknown",
         choices=("stop", "free", "occupied"),
-        default="stop",
         help="--raycast: a ray entering unknown space ends with NaN (stop, default), "
         "passes (free) or hits there (occupied)",
     )

@@ -120,6 +120,11 @@ def cmd_query(args: argparse.Namespace) -> int:
         raise OctolgpError("--raycast needs --max-range (metres along each ray)")
     if args.points is None and args.nearest:
         raise OctolgpError("--nearest applies to --points only")
+    if args.raycast is None and args.unknown is not None:
+        raise OctolgpError("--unknown applies to --raycast only")
+    if args.points is not None and args.threshold is not None:
+        raise OctolgpError("--threshold applies to --raycast and --distance only")
+    threshold = 0.5 if args.threshold is None else args.threshold
     flag, path = next(
         (f, p)
         for f, p in (
@@ -147,14 +152,18 @@ def cmd_query(args: argparse.Namespace) -> int:
                 )
             try:
                 values = m.raycast(
-                    data[:, :d], data[:, d:], args.max_range, args.threshold, unknown=args.unknown
+                    data[:, :d],
+                    data[:, d:],
+                    args.max_range,
+                    threshold,
+                    unknown=args.unknown or "stop",
                 )
             except OctolgpError as exc:
                 raise OctolgpError(f"--raycast: {exc}") from None
             column, what = "distance", "ray cast distances"
         else:
             try:
-                values = m.distance(data, args.threshold, max_distance=args.max_distance)
+                values = m.distance(data, threshold, max_distance=args.max_distance)
             except OctolgpError as exc:
                 raise OctolgpError(f"--distance: {exc}") from None
             column, what = "distance", "distances to the nearest occupied voxel"
