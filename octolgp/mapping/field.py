@@ -11,7 +11,7 @@ function only reads the store.
 from __future__ import annotations
 
 import itertools
-from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -23,6 +23,7 @@ from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.grid import LeafGrid, group_keys
 from octolgp.mapping.store import Leaf, LeafStore
 from octolgp.scan import FloatArray, as_points
+from octolgp.training import IntArray
 
 
 def query_points(points: object, config: MapConfig, name: str = "points") -> FloatArray:
@@ -91,17 +92,32 @@ def lookup(
     return out
 
 
-Reader = Callable[[FloatArray, tuple[str, ...]], list[FloatArray]]
-"""Stored voxel values at points, as :func:`lookup` (NaN where none): ``read(X, fields)``."""
+class Reader(Protocol):
+    """Where stored voxel values come from: NaN where no leaf holds one (as :func:`lookup`)."""
+
+    def at_points(self, X: FloatArray, fields: tuple[str, ...]) -> list[FloatArray]:
+        """Values of the voxels holding addressable points ``(q, d)``, one array per field."""
+        ...
+
+    def at_keys(self, keys: IntArray, fields: tuple[str, ...]) -> list[FloatArray]:
+        """Values of the voxels with per-axis keys ``(q, d)`` (in range), one array per field."""
+        ...
 
 
-def store_reader(store: LeafStore, grid: LeafGrid) -> Reader:
-    """:func:`lookup` on a store, as a :data:`Reader`."""
+@dataclass(frozen=True, slots=True)
+class StoreReader:
+    """:func:`lookup` on a map's store, as a :class:`Reader`."""
 
-    def read(X: FloatArray, fields: tuple[str, ...]) -> list[FloatArray]:
-        return lookup(store, grid, X, fields)
+    store: LeafStore
+    grid: LeafGrid
 
-    return read
+    def at_points(self, X: FloatArray, fields: tuple[str, ...]) -> list[FloatArray]:
+        """:func:`lookup` at points."""
+        return lookup(self.store, self.grid, X, fields)
+
+    def at_keys(self, keys: IntArray, fields: tuple[str, ...]) -> list[FloatArray]:
+        """:func:`lookup` at the centres of the voxels with these keys."""
+        return lookup(self.store, self.grid, self.grid.key_centres(keys), fields)
 
 
 def corner_latent(
@@ -124,16 +140,19 @@ def corner_latent(
     """
     d = config.dim
     res = config.resolution
-    (own,) = read(X, ("mean",))
+    (own,) = read.at_points(X, ("mean",))
     u = X / res - 0.5
     base = np.floor(u)
     frac = u - base
     corners = np.array(list(np.ndindex(*(2,) * d)), dtype=np.float64)  # (2^d, d)
-    centres = ((base[None, :, :] + corners[:, None, :] + 0.5) * res).reshape(-1, d)
-    inside = addressable_mask(centres, res, config.tree_depth)
-    mean = np.full(centres.shape[0], np.nan)
-    var = np.full(centres.shape[0], np.nan)
-    mean[inside], var[inside] = read(centres[inside], ("mean", "var"))
+    # per-axis voxel keys of the corners: key = floor(x / res) + 2**(tree_depth - 1)
+    half = 1 << (config.tree_depth - 1)
+    lower = base.astype(np.int64) + half
+    keys = (lower[None, :, :] + corners.astype(np.int64)[:, None, :]).reshape(-1, d)
+    inside = all_columns(keys.view(np.uint64) < (1 << config.tree_depth))  # 0 <= key < 2**depth
+    mean = np.full(keys.shape[0], np.nan)
+    var = np.full(keys.shape[0], np.nan)
+    mean[inside], var[inside] = read.at_keys(keys[inside], ("mean", "var"))
     held = ~np.isnan(mean)
     shape = (corners.shape[0], X.shape[0])
     corner_mean: FloatArray = np.where(held, mean, 0.0).reshape(shape)
@@ -141,9 +160,21 @@ def corner_latent(
     return frac, corners, corner_mean, corner_var, ~np.isnan(own)
 
 
+def all_columns(flags: np.ndarray) -> np.ndarray:
+    """``flags.all(axis=1)`` for a few columns, faster than numpy's reduce over a short axis."""
+    out = flags[:, 0].copy()
+    for j in range(1, flags.shape[1]):  # 2 or 3 axes
+        out &= flags[:, j]
+    return out
+
+
 def corner_weights(frac: FloatArray, corners: FloatArray) -> FloatArray:
     """Multilinear weights ``(2**d, q)`` of the corners (:func:`corner_latent`)."""
-    return np.asarray(np.prod(np.where(corners[:, None, :] == 1, frac, 1.0 - frac), axis=2))
+    factors = np.where(corners[:, None, :] == 1, frac, 1.0 - frac)  # (2^d, q, d)
+    weights = factors[:, :, 0].copy()
+    for j in range(1, frac.shape[1]):  # the product over axes, in axis order (2 or 3)
+        weights *= factors[:, :, j]
+    return weights
 
 
 def interpolate(
@@ -161,7 +192,7 @@ def interpolate(
     known : ndarray of bool, shape (q,)
         Points whose own voxel holds a value.
     """
-    frac, corners, mean, var, known = corner_latent(store_reader(store, grid), config, prior, X)
+    frac, corners, mean, var, known = corner_latent(StoreReader(store, grid), config, prior, X)
     weights = corner_weights(frac, corners)
     return (weights * mean).sum(axis=0), (weights * var).sum(axis=0), known
 
@@ -228,11 +259,11 @@ def occupancy_field(
     known = np.zeros(X.shape[0], dtype=bool)
     inside = np.flatnonzero(addressable_mask(X, res, depth))
     hp = m.hyperparameters
-    reader = store_reader(m.store, m.grid) if read is None else read
+    reader = StoreReader(m.store, m.grid) if read is None else read
     for lo in range(0, inside.size, QUERY_CHUNK):  # bounded temporaries, chunk by chunk
         at = inside[lo : lo + QUERY_CHUNK]
         if hp is None:
-            (p,) = reader(X[at], ("prob",))
+            (p,) = reader.at_points(X[at], ("prob",))
             held = ~np.isnan(p)
         else:
             frac, corners, mc, vc, held = corner_latent(reader, m.config, hp.signal_variance, X[at])
@@ -248,10 +279,10 @@ def held_at(m: ReadableMap, X: FloatArray, read: Reader | None = None) -> np.nda
 
     ``False`` outside the addressable range; ``read`` as in :func:`occupancy_field`.
     """
-    reader = store_reader(m.store, m.grid) if read is None else read
+    reader = StoreReader(m.store, m.grid) if read is None else read
     held = np.zeros(X.shape[0], dtype=bool)
     inside = np.flatnonzero(addressable_mask(X, m.config.resolution, m.config.tree_depth))
     for lo in range(0, inside.size, QUERY_CHUNK):  # bounded temporaries, chunk by chunk
         at = inside[lo : lo + QUERY_CHUNK]
-        held[at] = ~np.isnan(reader(X[at], ("mean",))[0])
+        held[at] = ~np.isnan(reader.at_points(X[at], ("mean",))[0])
     return held

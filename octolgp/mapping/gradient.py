@@ -30,10 +30,10 @@ import numpy as np
 
 from octolgp.mapping.field import (
     ReadableMap,
+    StoreReader,
     corner_latent,
     corner_weights,
     prior_variance,
-    store_reader,
 )
 from octolgp.scan import FloatArray
 
@@ -61,7 +61,7 @@ def latent_gradient(
         Points whose own voxel holds a value.
     """
     res = m.config.resolution
-    read = store_reader(m.store, m.grid)
+    read = StoreReader(m.store, m.grid)
     frac, corners, mc, vc, known = corner_latent(read, m.config, prior_variance(m), X)
     w = corner_weights(frac, corners)
     upper = corners[:, None, :] == 1  # (2^d, 1, d)

@@ -168,7 +168,7 @@ def _reader(
     samples = float(np.sum(max_range)) / step
     if not table_pays(m, lo, hi, samples * corners):
         return None
-    return voxel_table(m, lo, hi).read
+    return voxel_table(m, lo, hi)
 
 
 def _along(origins: FloatArray, directions: FloatArray, s: FloatArray) -> FloatArray:

@@ -69,7 +69,7 @@ def level_set(
         low, high = addressable_range(res, m.config.tree_depth)
         lo, hi = np.full(d, low), np.full(d, high - 1e-6 * res)
     table = voxel_table(m, lo, hi)
-    read: Reader = table.read
+    read: Reader = table
     known = ~np.isnan(table.mean)
     centres_all = _key_centres(m, table.keys, d)
     inside_box = ((centres_all >= lo) & (centres_all <= hi)).all(axis=1)
@@ -83,7 +83,9 @@ def level_set(
     step = max(1, QUERY_CHUNK // (1 << d))
     for start in range(0, base.shape[0], step):  # cells a chunk at a time
         corner = base[start : start + step, None, :] + offsets[None, :, :] * res  # (c, 2^d, d)
-        stored, mean = read(corner.reshape(-1, d), ("prob", "mean"))  # the field at centres
+        stored, mean = read.at_points(
+            corner.reshape(-1, d), ("prob", "mean")
+        )  # the field at centres
         prob, held = stored.reshape(corner.shape[:2]), ~np.isnan(mean).reshape(corner.shape[:2])
         full = held.all(axis=1) & ((prob >= threshold).any(axis=1)) & (prob < threshold).any(axis=1)
         corner, prob = corner[full], prob[full]

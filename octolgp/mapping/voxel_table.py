@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from octolgp.geometry.keys import unpack_keys
+from octolgp.geometry.keys import pack_keys, unpack_keys
 from octolgp.mapping.coarse import leaves_in_box
-from octolgp.mapping.field import ReadableMap
+from octolgp.mapping.field import ReadableMap, all_columns
 from octolgp.mapping.grid import LeafGrid
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
@@ -60,33 +60,40 @@ class VoxelTable:
     low: IntArray
     slots: IntArray | None
 
-    def rows(self, X: FloatArray) -> IntArray:
-        """Row of the voxel holding each addressable point ``(q, d)``; -1 where none."""
+    def rows(self, keys: IntArray) -> IntArray:
+        """Row of the voxel with each per-axis key ``(q, d)``; -1 where the table has none."""
         if self.keys.size == 0:
-            return np.full(X.shape[0], -1, dtype=np.int64)
+            return np.full(keys.shape[0], -1, dtype=np.int64)
         if self.slots is not None:
-            local = self.grid.voxel_index_keys(X) - self.low
+            local = keys - self.low
             shape = np.array(self.slots.shape)
-            inside = ((local >= 0) & (local < shape)).all(axis=1)
-            out = np.full(X.shape[0], -1, dtype=np.int64)
-            out[inside] = self.slots[tuple(local[inside].T)]
-            return out
-        packed = self.grid.voxel_keys(X)
+            inside = all_columns(local.view(np.uint64) < shape.astype(np.uint64))  # 0 <= local
+            flat = local[:, 0].copy()
+            for j in range(1, local.shape[1]):  # C order: the last axis varies fastest
+                flat *= shape[j]
+                flat += local[:, j]
+            flat[~inside] = 0
+            return np.where(inside, self.slots.reshape(-1)[flat], -1)
+        packed = pack_keys(keys)
         at = np.minimum(np.searchsorted(self.keys, packed), self.keys.size - 1)
         return np.where(self.keys[at] == packed, at, -1)
 
-    def read(self, X: FloatArray, fields: tuple[str, ...]) -> list[FloatArray]:
+    def at_keys(self, keys: IntArray, fields: tuple[str, ...]) -> list[FloatArray]:
+        """Stored values of the voxels with per-axis keys ``(q, d)`` (NaN where none)."""
+        rows = self.rows(keys)
+        found = rows >= 0
+        out = [np.full(keys.shape[0], np.nan) for _ in fields]
+        for arr, name in zip(out, fields, strict=True):
+            arr[found] = getattr(self, name)[rows[found]]
+        return out
+
+    def at_points(self, X: FloatArray, fields: tuple[str, ...]) -> list[FloatArray]:
         """Stored values at addressable points ``(q, d)``, as :func:`~octolgp.mapping.field.lookup`.
 
         NaN where the table holds no voxel for a point: the table must cover the
         leaves of every point read.
         """
-        rows = self.rows(X)
-        found = rows >= 0
-        out = [np.full(X.shape[0], np.nan) for _ in fields]
-        for arr, name in zip(out, fields, strict=True):
-            arr[found] = getattr(self, name)[rows[found]]
-        return out
+        return self.at_keys(self.grid.voxel_index_keys(X), fields)
 
 
 def voxel_table(m: ReadableMap, lo: FloatArray, hi: FloatArray) -> VoxelTable:
