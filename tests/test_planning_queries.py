@@ -512,3 +512,51 @@ def test_large_queries_in_chunks_answer_as_one(
     parts = (map3d.raycast(o, u, 8.0), map3d.distance(X))
     for a, b in zip(whole, parts, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_3d_mesh_writes_as_ply_and_obj(map3d: OnlineMap, tmp_path: Path) -> None:
+    from octolgp.export.mesh import write_mesh
+
+    v, f = map3d.surface(bbox=(np.array([0.0, 0.0, 0.0]), np.array([6.0, 6.0, 3.0])))
+    assert f.shape[0] > 100
+    write_mesh(tmp_path / "m.ply", v, f)
+    head, body = (tmp_path / "m.ply").read_bytes().split(b"end_header\n")
+    assert f"element face {f.shape[0]}".encode() in head
+    assert len(body) == v.shape[0] * 12 + f.shape[0] * 13
+    faces = np.frombuffer(body[v.shape[0] * 12 :], dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    assert (faces["n"] == 3).all()
+    np.testing.assert_array_equal(faces["i"], f)
+    np.testing.assert_allclose(
+        np.frombuffer(body[: v.shape[0] * 12], "<f4").reshape(-1, 3), v, atol=1e-5
+    )
+    write_mesh(tmp_path / "m.obj", v, f)
+    lines = (tmp_path / "m.obj").read_text().splitlines()
+    got = np.array([[int(x) for x in line.split()[1:]] for line in lines if line.startswith("f ")])
+    np.testing.assert_array_equal(got - 1, f)
+    with pytest.raises(OctolgpError, match="mesh path"):
+        write_mesh(tmp_path / "m.stl", v, f)
+
+
+def test_the_room_mesh_example_writes_a_mesh(tmp_path: Path) -> None:
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    out = tmp_path / "room.obj"
+    run = subprocess.run(
+        [
+            sys.executable,
+            str(root / "examples" / "room_mesh.py"),
+            "--out",
+            str(out),
+            "--poses",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(root)},
+    ).stdout
+    assert "triangles" in run
+    assert sum(line.startswith("f ") for line in out.read_text().splitlines()) > 1000
