@@ -432,8 +432,16 @@ def test_surface_vertices_lie_on_the_level_set_and_faces_face_out(any_map: Onlin
     if d == 2:  # the paper's world is closed: every polyline is a loop
         assert (uses == 2).all()
     lo, hi = np.quantile(v, 0.3, axis=0), np.quantile(v, 0.7, axis=0)
-    vb, _ = m.surface(bbox=(lo, hi))
+    vb, fb = m.surface(bbox=(lo, hi))
     assert 0 < vb.shape[0] < v.shape[0]
+    from scipy.spatial import cKDTree
+
+    gap, _ = cKDTree(v).query(vb)  # a box's surface is part of the whole one
+    assert gap.max() < 2e-3 * m.config.resolution
+    cells = np.floor(vb[fb].min(axis=1) / m.config.resolution - 0.5)  # faces' cells' lower corners
+    res = m.config.resolution
+    assert ((cells + 0.5) * res >= lo - 1e-9).all()
+    assert ((cells + 0.5) * res <= hi + 1e-9).all()
 
 
 def test_export_writes_the_surface_as_obj_and_ply(map_file: Path, tmp_path: Path) -> None:

@@ -65,10 +65,10 @@ def level_set(
     """
     d = m.config.dim
     res = m.config.resolution
+    low, high = addressable_range(res, m.config.tree_depth)
     if lo is None or hi is None:
-        low, high = addressable_range(res, m.config.tree_depth)
-        lo, hi = np.full(d, low), np.full(d, high - 1e-6 * res)
-    table = voxel_table(m, lo, hi)
+        lo, hi = np.full(d, low), np.full(d, high - 2 * res)
+    table = voxel_table(m, lo, np.minimum(hi + res, high - 1e-6 * res))  # the cells' upper corners
     read: Reader = table
     known = ~np.isnan(table.mean)
     centres_all = _key_centres(m, table.keys, d)
