@@ -1,6 +1,6 @@
 """Planning queries: raycast, segment checks, distance and gradient, beside OctoMap's castRay.
 
-Figures: BENCHMARKS.md, "Planning queries (issue #29)".
+Figures: BENCHMARKS.md, "Planning queries".
 
 Scenes:
 

@@ -50,8 +50,9 @@ class PlanningReads:
         """Distance along each ray to where P(occupied) first reaches ``threshold``.
 
         The continuous field (:meth:`occupancy`, interpolated) is marched at steps of
-        at most half a voxel, all rays at once, and the first step that reaches the
-        threshold is refined by bisection to a thousandth of a voxel
+        at most half a voxel, all rays at once, with a sample in every voxel passed
+        besides (so unknown space is never stepped over), and the first bracket that
+        reaches the threshold is refined by bisection to a thousandth of a voxel
         (:func:`octolgp.mapping.planning.raycast`).
 
         Parameters
