@@ -123,6 +123,68 @@ def check_scan_size(scan: Scan, limit: int, field: str = "OnlineConfig.max_scan_
         )
 
 
+ROTATION_TOLERANCE = 1e-3
+"""Largest ``|RᵀR - I|`` entry of a sensor rotation kept as the nearest rotation: pose
+files print a few digits, and their matrices and quaternions are that far from one."""
+
+
+def nearest_rotation(value: object, dim: int, name: str) -> FloatArray:
+    """The rotation nearest to a ``(dim, dim)`` matrix within :data:`ROTATION_TOLERANCE` of one.
+
+    The nearest rotation in the Frobenius norm, ``U Vᵀ`` of the SVD ``R = U S Vᵀ``
+    (the orthogonal Procrustes solution).
+
+    Raises
+    ------
+    OctolgpError
+        Naming ``name``: not numeric, the wrong shape, NaN or inf, a reflection
+        (``det < 0``) or further than the tolerance from a rotation.
+    """
+    try:
+        R = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise OctolgpError(f"{name} is not a numeric matrix: {exc}") from None
+    if R.shape != (dim, dim):
+        raise OctolgpError(f"{name} must have shape ({dim}, {dim}), got {R.shape}")
+    if not np.isfinite(R).all():
+        raise OctolgpError(f"{name} contains NaN or inf")
+    off = float(np.abs(R.T @ R - np.eye(dim)).max())
+    det = float(np.linalg.det(R))
+    if off > ROTATION_TOLERANCE or det <= 0:
+        raise OctolgpError(
+            f"{name} is not a rotation: |RᵀR - I| = {off:.2g} (at most {ROTATION_TOLERANCE:g}) "
+            f"and det = {det:.6g} (> 0)"
+        )
+    if off <= 1e-12 and abs(det - 1.0) <= 1e-12:  # a rotation to rounding: kept bit for bit
+        return R
+    U, _, Vt = np.linalg.svd(R)
+    out: FloatArray = U @ Vt
+    return out
+
+
+def planar_rotation(yaw: float, dim: int) -> FloatArray:
+    """The rotation by ``yaw`` radians (CCW) about z, ``(dim, dim)`` (2 or 3)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.eye(dim)
+    R[:2, :2] = [[c, -s], [s, c]]
+    return R
+
+
+def pose_rotation(pose: ArrayLike, dim: int) -> FloatArray:
+    """The rotation of a sensor pose as :mod:`octolgp.ros_msgs` takes it, ``(dim, dim)``.
+
+    ``(x, y, theta)`` turns by ``theta`` about z; a 3x3 or 4x4 homogeneous matrix gives
+    its rotation block (a 3x3 one's, in a 3D scan, about z). The pose has been checked.
+    """
+    p = np.asarray(pose, dtype=np.float64)
+    if p.shape == (3,):
+        return planar_rotation(float(p[2]), dim)
+    if p.shape == (3, 3) and dim == 3:
+        return planar_rotation(float(np.arctan2(p[1, 0], p[0, 0])), 3)
+    out: FloatArray = p[:dim, :dim].copy()
+    return out
+
+
 @dataclass(frozen=True, eq=False)
 class Scan:
     """One range scan, in the world frame.
@@ -138,12 +200,21 @@ class Scan:
         along it and no hit.
     stamp : float, optional
         Time, seconds.
+    rotation : array_like of shape (d, d), optional
+        The sensor frame's orientation in the world frame (its axes as columns), so
+        that ``[[rotation, origin], [0, 1]]`` is the pose the scan was taken from
+        (:attr:`pose`). The map is built from ``origin`` and ``points`` alone; the map
+        journal keeps the rotation so that a pose graph's new absolute poses can be
+        applied later (:meth:`octolgp.OnlineMap.correct_poses`). A matrix within
+        :data:`ROTATION_TOLERANCE` of a rotation is kept as the nearest rotation.
+        :meth:`from_ranges`, :meth:`from_laserscan` and :meth:`from_pointcloud2` set it.
 
     Raises
     ------
     OctolgpError
-        On a wrong shape, a non-finite value, an empty scan, or a non-positive
-        ``max_range``.
+        On a wrong shape, a non-finite value, an empty scan, a non-positive
+        ``max_range``, or a ``rotation`` that is not a rotation (a reflection, a scale,
+        a shear).
 
     Notes
     -----
@@ -156,6 +227,7 @@ class Scan:
     points: FloatArray
     max_range: float | None = None
     stamp: float | None = None
+    rotation: FloatArray | None = None
 
     def __post_init__(self) -> None:
         origin = np.asarray(self.origin) if not isinstance(self.origin, np.ndarray) else self.origin
@@ -182,6 +254,10 @@ class Scan:
             if not np.isfinite(st):
                 raise OctolgpError(f"Scan.stamp must be finite, got {st!r}")
             object.__setattr__(self, "stamp", float(st))
+        if self.rotation is not None:
+            rotation = nearest_rotation(self.rotation, origin.shape[0], "Scan.rotation")
+            rotation.setflags(write=False)
+            object.__setattr__(self, "rotation", rotation)
         origin.setflags(write=False)
         points.setflags(write=False)
         object.__setattr__(self, "origin", origin)
@@ -194,6 +270,19 @@ class Scan:
 
     def __len__(self) -> int:
         return int(self.points.shape[0])
+
+    @property
+    def pose(self) -> FloatArray | None:
+        """The sensor's pose, a ``(d+1, d+1)`` homogeneous matrix (sensor to world frame).
+
+        ``None`` when the scan was made without its :attr:`rotation`.
+        """
+        if self.rotation is None:
+            return None
+        d = self.dim
+        T = np.eye(d + 1)
+        T[:d, :d], T[:d, d] = self.rotation, self.origin
+        return T
 
     @classmethod
     def from_ranges(
@@ -239,7 +328,7 @@ class Scan:
             raise OctolgpError("Scan.from_ranges: ranges must be >= 0")
         phi = p[2] + a
         pts = p[:2] + r[:, None] * np.stack([np.cos(phi), np.sin(phi)], axis=1)
-        return cls(origin=p[:2], points=pts, max_range=max_range, stamp=stamp)
+        return cls(p[:2], pts, max_range, stamp, planar_rotation(float(p[2]), 2))
 
     @classmethod
     def from_laserscan(
@@ -289,7 +378,7 @@ class Scan:
             raise OctolgpError(
                 "Scan.from_laserscan: no beam left (every range is NaN, -inf or below range_min)"
             )
-        return cls(*beams, stamp)
+        return cls(*beams, stamp, pose_rotation(pose, beams[0].shape[0]))
 
     @classmethod
     def from_pointcloud2(
@@ -335,7 +424,7 @@ class Scan:
             raise OctolgpError(f"Scan.from_pointcloud2: {exc}") from None
         if points is None:
             raise OctolgpError("Scan.from_pointcloud2: no finite point in the cloud")
-        return cls(*points, stamp)
+        return cls(*points, stamp, pose_rotation(pose, 3))
 
     def rounded(self, precision: float) -> Scan:
         """The scan on a grid of ``precision`` steps from the sensor, beams in canonical order.
@@ -355,7 +444,7 @@ class Scan:
         steps = scan_steps(self, precision)
         steps = steps[canonical_order(steps)]
         points = points_from_steps(self.origin, steps, precision)
-        return Scan(origin=self.origin, points=points, max_range=self.max_range, stamp=self.stamp)
+        return Scan(self.origin, points, self.max_range, self.stamp, self.rotation)
 
     def downsample(self, voxel: float) -> Scan:
         """Keep one endpoint per voxel of edge ``voxel`` (a voxel-grid filter).
@@ -374,8 +463,8 @@ class Scan:
         Returns
         -------
         Scan
-            The same origin, ``max_range`` and ``stamp``, fewer points, in their
-            original order.
+            The same origin, ``max_range``, ``stamp`` and ``rotation``, fewer points, in
+            their original order.
         """
         if isinstance(voxel, bool) or not isinstance(voxel, int | float | np.floating | np.integer):
             raise OctolgpError(f"Scan.downsample: voxel must be a number, got {voxel!r}")
@@ -392,4 +481,5 @@ class Scan:
             points=self.points[np.sort(first)],
             max_range=self.max_range,
             stamp=self.stamp,
+            rotation=self.rotation,
         )

@@ -106,10 +106,13 @@ def test_a_correction_that_moves_a_scan_away_removes_the_leaves_it_made(tmp_path
         assert_same_map(m, fresh)
 
 
-def test_a_correction_while_learning_moves_the_buffered_scans(tmp_path: Path) -> None:
+@pytest.mark.parametrize("in_ram", [False, True])
+def test_a_correction_while_learning_moves_the_buffered_scans(tmp_path: Path, in_ram: bool) -> None:
+    """In RAM the lattice map keeps the buffered scans' evidence while it learns: the
+    correction rebuilds it too."""
     learning = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(learn_scans=5))
     scans, _ = drifted_mission()
-    with OnlineMap(learning, path=tmp_path / "m.octolgp") as m:
+    with OnlineMap(learning, path=None if in_ram else tmp_path / "m.octolgp") as m:
         m.insert_scans(scans[:3])
         update = m.correct_scans({2: pose(0.1, 0.0, 0.02)})
         assert update.buffered
@@ -153,13 +156,22 @@ def test_bad_corrections_are_refused_and_leave_the_map_unchanged(
         assert [s.points.tobytes() for s in m.scans()] == journal
 
 
-def test_a_map_without_a_journal_cannot_be_corrected() -> None:
-    m = OnlineMap(config())
-    m.insert_scans(drifted_mission()[0][:3])
-    before = snapshot(m)
-    with pytest.raises(OctolgpError, match="journal"):
-        m.correct_scans({2: pose(0.1, 0.0, 0.0)})
-    assert snapshot(m) == before
+@pytest.mark.parametrize("engine", ["lattice", "exact"])
+def test_a_map_in_memory_corrects_as_a_map_file_does(tmp_path: Path, engine: str) -> None:
+    """The journal of a map without a file is kept in RAM: the same correction, bit for bit."""
+    scans, corrections = drifted_mission()
+    with OnlineMap(config(engine), path=tmp_path / "m.octolgp") as on_disk:
+        in_ram = OnlineMap(config(engine))
+        for m in (on_disk, in_ram):
+            m.insert_scans(scans)
+            m.correct_scans(corrections)
+        assert in_ram.path is None
+        assert snapshot(in_ram) == snapshot(on_disk)
+        for a, b in zip(in_ram.scans(), on_disk.scans(), strict=True):  # the same journal
+            assert a.points.tobytes() == b.points.tobytes()
+            assert a.origin.tobytes() == b.origin.tobytes()
+        assert 0 < in_ram.journal_bytes < 16 * sum(len(s) for s in scans)
+        assert on_disk.journal_bytes == 0
 
 
 def test_a_budgeted_map_corrects_through_its_spill_file() -> None:
@@ -280,12 +292,12 @@ def test_octolgp_correct_applies_a_corrections_file(
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("6 0.1 0.0\n", "poses.txt:1: expected the scan number and 9 matrix entries"),
+        ("6 0.1 0.0\n", "poses.txt:1: scan 6: expected 3 values (a pose), 6 or 9"),
         ("# fine\n6 0.1 0.0 zero\n", "poses.txt:2: a value is not a number"),
         ("x 0.1 0.0 0.0\n", "poses.txt:1: scan number 'x' is not a positive integer"),
         ("6 0 0 0\n6 0 0 0\n", "poses.txt:2: scan 6 is corrected twice"),
         ("6 2 0 0 0 2 0 0 0 1\n", "poses.txt:1: scan 6 is not rigid"),
-        ("99 0 0 0\n", "scan 99 is not in the map"),
+        ("99 0 0 0\n", "poses.txt:1: scan 99 is not in the map"),
     ],
 )
 def test_octolgp_correct_refuses_a_bad_file_with_one_line(
@@ -335,10 +347,37 @@ def test_corrections_between_inserts_keep_the_scan_index_current(tmp_path: Path)
         assert_same_map(m, fresh)
 
 
-def test_a_map_saved_from_memory_has_no_journal_to_correct(tmp_path: Path) -> None:
+def test_a_map_made_without_a_journal_cannot_be_corrected() -> None:
+    m = OnlineMap(config(), journal=False)
+    m.insert_scans(drifted_mission()[0][:3])
+    assert m.journal_bytes == 0
+    before = snapshot(m)
+    with pytest.raises(OctolgpError, match=r"keeps no journal.*journal=False"):
+        m.correct_scans({2: pose(0.1, 0.0, 0.0)})
+    assert snapshot(m) == before
+
+
+def test_a_map_saved_from_memory_keeps_its_journal(tmp_path: Path) -> None:
     m = OnlineMap(config())
     m.insert_scans(drifted_mission()[0][:4])
     m.save(tmp_path / "saved.octolgp")
+    m.correct_scans({2: pose(0.1, 0.0, 0.0)})
+    with OnlineMap.open(tmp_path / "saved.octolgp") as back:
+        back.correct_scans({2: pose(0.1, 0.0, 0.0)})
+        assert snapshot(back) == snapshot(m)
+
+
+def test_a_map_file_without_a_journal_cannot_be_corrected(tmp_path: Path) -> None:
+    """Earlier versions saved a map in memory without its scans."""
+    import sqlite3
+
+    m = OnlineMap(config())
+    m.insert_scans(drifted_mission()[0][:4])
+    m.save(tmp_path / "saved.octolgp")
+    con = sqlite3.connect(tmp_path / "saved.octolgp")
+    con.execute("DELETE FROM scans")
+    con.commit()
+    con.close()
     with OnlineMap.open(tmp_path / "saved.octolgp") as back:
         before = snapshot(back)
         with pytest.raises(OctolgpError, match="no journal"):

@@ -643,6 +643,8 @@ CLI_BAD: list[list[str]] = [
     ["run", "i20.log", "--out", "a.octolgp", "--jobs", "0"],
     ["run", "i20.log", "--out", "a.octolgp", "--memory-budget", "-1"],
     ["run", "i20.log", "--out", "a.octolgp", "--rerun-rays", "-3"],
+    ["run", "i20.log", "--out", "a.octolgp", "--rerun-colors", "viridis"],
+    ["replay", "x.rrd", "--out", "r.octolgp", "--rerun-colors", "grey"],
     ["run", "i20.log", "--out", "a.octolgp", "--rerun-connect", "notaurl", "--quiet"],
     ["run", "i20.log", "--out", "a.octolgp", "--rerun-save", "/proc/nope/x.rrd", "--quiet"],
     ["run", "i20.log", "--out", "m.octolgp"],

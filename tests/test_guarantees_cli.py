@@ -246,15 +246,21 @@ def test_resume_checks_the_log_against_the_journal(
     assert "m.octolgp" in line
     with OnlineMap.open(out, read_only=True) as m:
         assert m.n_scans == 4
-    saved = tmp_path / "saved.octolgp"
-    memory = OnlineMap(CONFIG)  # a map in memory keeps no journal, nor does its save
+    saved, emptied = tmp_path / "saved.octolgp", tmp_path / "emptied.octolgp"
+    memory = OnlineMap(CONFIG)  # a map in memory keeps its journal in RAM, and its save too
     memory.insert_scans(SCANS[:4])
     memory.save(saved)
-    assert main(["run", str(log), *common, "--out", str(saved), "--resume"]) == 2
+    memory.save(emptied)
+    con = sqlite3.connect(emptied)  # as earlier versions saved a map in memory
+    con.execute("DELETE FROM scans")
+    con.commit()
+    con.close()
+    assert main(["run", str(log), *common, "--out", str(emptied), "--resume"]) == 2
     assert "keeps no journal" in one_error_line(capsys)
-    assert main(["run", str(log), *common, "--resume"]) == 0
-    with OnlineMap.open(out, read_only=True) as m:
-        assert m.n_scans == len(SCANS)
+    for path in (out, saved):
+        assert main(["run", str(log), *common, "--out", str(path), "--resume"]) == 0
+        with OnlineMap.open(path, read_only=True) as m:
+            assert m.n_scans == len(SCANS)
 
 
 # --------------------------------------------------------------------------- refused scans

@@ -277,3 +277,54 @@ def test_a_version_5_blob_with_kept_points_reads_back() -> None:
     want = origin + steps * 0.01
     want[1] = kept_point[0]
     assert back.tobytes() == want.tobytes()
+
+
+@pytest.mark.parametrize("engine", ["lattice", "exact"])
+def test_a_map_in_memory_keeps_the_journal_window_a_file_keeps(tmp_path: Path, engine: str) -> None:
+    """Without a file the journal, its checkpoints and their leaf records live in RAM, as
+    the file keeps them: corrections give the same map bit for bit, and older scans are
+    refused alike."""
+    from test_online import evidence_bytes, snapshot
+
+    scans, corrections = _loop_mission(22)
+    online = OnlineConfig(engine=engine, journal_scans=4)
+    config = MapConfig(dim=2, resolution=0.1, hyperparameters=HP2, online=online)
+    with OnlineMap(config, path=tmp_path / "m.octolgp") as on_disk:
+        in_ram = OnlineMap(config)
+
+        def same() -> None:
+            assert snapshot(in_ram) == snapshot(on_disk)
+            assert in_ram.journal_start == on_disk.journal_start
+            kept = in_ram._ram_journal
+            assert kept is not None
+            assert on_disk._file is not None
+            assert kept.checkpoints == on_disk._file.checkpoints
+            rows = [sorted(j.checkpoint_rows()) for j in (kept, on_disk._file)]
+            assert [r[:2] for r in rows[0]] == [r[:2] for r in rows[1]]
+            for (c, key, a_blob), (_, _, b_blob) in zip(*rows, strict=True):
+                a_leaf = kept.checkpoint_leaves(c, [key])[key]
+                b_leaf = on_disk._file.checkpoint_leaves(c, [key])[key]
+                assert (a_blob is None) == (b_blob is None)
+                if a_leaf is not None and b_leaf is not None:  # the evidence; stamps may differ
+                    assert evidence_bytes(a_leaf) == evidence_bytes(b_leaf)
+            for a, b in zip(in_ram.scans(), on_disk.scans(), strict=True):
+                assert a.points.tobytes() == b.points.tobytes()
+
+        for m in (on_disk, in_ram):
+            m.insert_scans(scans[:13])
+            with pytest.raises(OctolgpError, match=r"journal_scans = 4"):
+                m.correct_scans({8: corrections[8]})
+            m.correct_scans({10: corrections[10], 11: corrections[11]})
+        same()
+        for m in (on_disk, in_ram):
+            for scan in scans[13:22]:  # one by one: the window moves past the correction
+                m.insert_scan(scan)
+            m.correct_scans({17: corrections[17], 22: corrections[22]})
+        same()
+        assert in_ram.journal_start == 16
+        in_ram.save(tmp_path / "saved.octolgp")
+    with OnlineMap.open(tmp_path / "saved.octolgp") as back:
+        assert back.journal_start == 16
+        back.correct_scans({18: corrections[18]})
+        in_ram.correct_scans({18: corrections[18]})
+        assert snapshot(back) == snapshot(in_ram)

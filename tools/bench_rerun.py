@@ -13,6 +13,8 @@ sink (opened as ``octolgp run --rerun-save`` opens it:
 
     .venv/bin/python tools/bench_rerun.py --scans 910 --repeats 1
     .venv/bin/python tools/bench_rerun.py --scans 300 --repeats 2 --before none
+    .venv/bin/python tools/bench_rerun.py --scans 910 --repeats 1 --before 0563c95 --probability
+    .venv/bin/python tools/bench_rerun.py --scans 80 --repeats 2 --learning
 """
 
 from __future__ import annotations
@@ -54,18 +56,22 @@ def sink_at(revision: str) -> ModuleType:
     spec = importlib.util.spec_from_loader(f"octolgp_rerun_{revision}", loader=None)
     assert spec is not None
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up there
     exec(compile(source, f"{revision}:octolgp/sinks/rerun.py", "exec"), module.__dict__)
     return module
 
 
-def opener(module: ModuleType, rays: int) -> Opener:
-    """How ``octolgp run --rerun-save`` of that module's revision opens a recording."""
+def opener(module: ModuleType, rays: int, **options: Any) -> Opener:
+    """How ``octolgp run --rerun-save`` of that module's revision opens a recording.
+
+    ``options`` go to the sink (``colors="probability"``: ``--rerun-colors probability``).
+    """
 
     def open_(rrd: Path, dim: int) -> tuple[Any, Any]:
         if "blueprint" in module.open_recording.__code__.co_varnames:
             bp = module.default_blueprint(dim)
             rec, _ = module.open_recording("octolgp-bench", save=rrd, blueprint=bp)
-            return rec, module.RerunSink(rec, rays=rays, blueprint=False)
+            return rec, module.RerunSink(rec, rays=rays, blueprint=False, **options)
         rec, _ = module.open_recording("octolgp-bench", save=rrd)
         return rec, module.RerunSink(rec, rays=rays)
 
@@ -108,6 +114,40 @@ def interleaved(
     return seconds
 
 
+def learning_phase(scans: list[Scan], jobs: int, repeats: int) -> None:
+    """Seconds of the learning phase with and without the provisional map; prints a table.
+
+    Maps ``scans`` (hyperparameters learnt on the first ``learn_scans``, 40 in 2D) with the
+    current sink, ``provisional`` on and off in turn, each streaming to a recording file;
+    times the buffered scans, the learning step and the rest apart.
+    """
+    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(n_jobs=jobs))
+    learn = config.learn_scans
+    spent: dict[bool, list[tuple[float, float, float]]] = {True: [], False: []}
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(repeats):  # one pass per setting per repeat, the order alternating
+            for provisional in (r % 2 == 0, r % 2 == 1):
+                rec, _ = current.open_recording("octolgp-bench", save=Path(tmp) / f"{r}.rrd")
+                sink = current.RerunSink(rec, provisional=provisional)
+                times = []
+                with OnlineMap(config, sink=sink) as m:
+                    for scan in scans:  # one iteration per scan
+                        t0 = time.perf_counter()
+                        m.insert_scan(scan)
+                        times.append(time.perf_counter() - t0)
+                rec.flush()
+                rec.disconnect()
+                phases = (sum(times[: learn - 1]), times[learn - 1], sum(times[learn:]))
+                spent[provisional].append(phases)
+    print(f"Intel lab, first {len(scans)} scans, learning on {learn}, {jobs} threads")
+    print(f"| provisional map | scans 1-{learn - 1} s | scan {learn} (learning) s | the rest s |")
+    print("|---|---|---|---|")
+    for provisional in (False, True):
+        med = np.median(np.array(spent[provisional]), axis=0)
+        print(f"| {'on' if provisional else 'off'} | {med[0]:.2f} | {med[1]:.2f} | {med[2]:.2f} |")
+    print("runs (s): " + "; ".join(f"{k}: {v}" for k, v in spent.items()))
+
+
 def main() -> int:
     """Run the rounds and print the table."""
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
@@ -118,15 +158,35 @@ def main() -> int:
     parser.add_argument(
         "--before", default=BEFORE, help=f"git revision to compare with (default {BEFORE}; none)"
     )
+    parser.add_argument(
+        "--probability",
+        action="store_true",
+        help="also run the current sink with colors='probability' (--rerun-colors probability)",
+    )
+    parser.add_argument(
+        "--learning",
+        action="store_true",
+        help="time the learning phase (hyperparameters learnt) with and without the "
+        "provisional map instead",
+    )
     args = parser.parse_args()
     scans = list(load_scans(INTEL))[: args.scans]
-    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(n_jobs=args.jobs))
+    if args.learning:
+        learning_phase(scans, args.jobs, args.repeats)
+        return 0
+    # fits in insert_scan in every map: a map with a sink never defers them (OnlineConfig.defer_fit)
+    online = OnlineConfig(n_jobs=args.jobs, defer_fit=False)
+    config = MapConfig(dim=2, resolution=0.1, online=online)
     hp = learn_hyperparameters(scans[:10], config)
     config = dataclasses.replace(config, hyperparameters=hp)
     runs: dict[str, Opener | None] = {"off (null sink)": None}
     if args.before != "none":
         runs[f"Rerun sink at {args.before}"] = opener(sink_at(args.before), args.rays)
     runs["Rerun sink now"] = opener(current, args.rays)
+    if args.probability:
+        runs["Rerun sink now, probability colours"] = opener(
+            current, args.rays, colors="probability"
+        )
     seconds: dict[str, list[float]] = {name: [] for name in runs}
     sizes: dict[str, list[int]] = {name: [] for name in runs}
     names = list(runs)

@@ -1,16 +1,20 @@
-"""Screenshots of the Rerun view of a 2D and a 3D map, taken by the real viewer.
+"""Screenshots of the Rerun view of a 2D and a 3D map as ``octolgp run`` opens it.
 
-Used in BENCHMARKS.md, "The tile view" (``docs/rerun_2d.png``, ``docs/rerun_3d.png``).
+Used in BENCHMARKS.md, "Rerun streaming" and "The tile view" (``docs/rerun_2d.png``,
+``docs/rerun_3d.png``).
 
-Records the Intel log (2D, ``--scans`` scans, the whole log by default) and a simulated 3D
-lidar drive down a street (:func:`octolgp.sim.mission.simulate_mission3d`) the way ``octolgp run
---rerun-save`` does, opens each recording in rerun's headless viewer
+Maps the Intel log (2D, ``--scans`` scans, the whole log by default) and a simulated 3D
+lidar drive down a street (:func:`octolgp.sim.mission.simulate_mission3d`, written as an npz
+scan log, 0.2 m) with ``octolgp run --rerun-save`` itself, so the recordings hold the CLI's
+own default blueprint, which the sink bounds on the map as it grows; nothing here zooms.
+Each recording is opened in rerun's headless viewer
 (``rerun.experimental.ViewerClient.spawn(headless=True)``; on a machine without a GPU it
-needs Mesa's software Vulkan driver, ``apt-get install mesa-vulkan-drivers``), moves the time
-cursor to the last scan and saves the screenshots:
+needs Mesa's software Vulkan driver, ``apt-get install mesa-vulkan-drivers``), the time
+cursor is moved to the last scan and the screenshot saved:
 
     .venv/bin/python tools/rerun_screenshots.py            # docs/rerun_2d.png, docs/rerun_3d.png
     .venv/bin/python tools/rerun_screenshots.py --scans 200 --out /tmp
+    .venv/bin/python tools/rerun_screenshots.py --flags="--rerun-colors probability" --suffix _p
 
 The recordings are kept beside the screenshots with ``--keep``.
 """
@@ -19,66 +23,51 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import socket
 import sys
 import tempfile
 import time
-from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
 
-import numpy as np
-
-from octolgp import MapConfig, OnlineConfig, OnlineMap, Scan, load_scans
-from octolgp.sinks.rerun import RerunSink, default_blueprint, open_recording
+from octolgp.cli import main as octolgp
+from octolgp.io.npz import write_npz
 
 ROOT = Path(__file__).resolve().parents[1]
 INTEL = ROOT / "data" / "intel_lab" / "intel-corrected.log.gz"
 
 
-def record(scans: Iterable[Scan], config: MapConfig, rrd: Path, blueprint: Any) -> int:
-    """Map the scans with a Rerun recording as ``octolgp run --rerun-save``; the scan count."""
-    rec, _ = open_recording("octolgp", save=rrd, blueprint=blueprint)
-    n = 0
-    with OnlineMap(config, sink=RerunSink(rec, blueprint=False)) as m:
-        for scan in scans:  # one iteration per scan
-            m.insert_scan(scan)
-            n += 1
-        m.flush()
-    rec.flush()
-    rec.disconnect()
-    return n
+def run(scans: Path, rrd: Path, flags: list[str]) -> None:
+    """``octolgp run SCANS --rerun-save RRD`` with ``flags``, the map beside the recording."""
+    out = rrd.with_suffix(".octolgp")
+    argv = [str(scans), "--out", str(out), "--rerun-save", str(rrd), "--overwrite", "--quiet"]
+    if octolgp(["run", *argv, *flags]) != 0:
+        raise SystemExit(f"octolgp run {shlex.join(argv + flags)} failed")
 
 
-def hit_bounds(scans: Iterable[Scan]) -> tuple[tuple[float, float], tuple[float, float]]:
-    """The ranges of x and y holding 99 % of the hits (beams short of max range), + 5 %."""
-    hits = []
-    for scan in scans:  # one iteration per scan
-        rng = np.linalg.norm(scan.points - scan.origin, axis=1)
-        far = np.inf if scan.max_range is None else 0.99 * scan.max_range
-        hits.append(scan.points[rng < far][::10, :2])
-    lo, hi = np.percentile(np.concatenate(hits), [0.5, 99.5], axis=0)
-    margin = 0.05 * float(np.max(hi - lo))
-    return (lo[0] - margin, hi[0] + margin), (lo[1] - margin, hi[1] + margin)
+def intel(rrd: Path, n_scans: int | None, flags: list[str]) -> int:
+    """The Intel log (2D, 0.1 m, the CLI's defaults); the scans mapped."""
+    limit = [] if n_scans is None else ["--limit", str(n_scans)]
+    run(INTEL, rrd, [*limit, *flags])
+    return n_scans if n_scans is not None else _scan_count(rrd)
 
 
-def intel(rrd: Path, n_scans: int | None) -> int:
-    """The Intel log (2D, 0.1 m).
-
-    The view is zoomed on the building, as a user would zoom: free beams reach 80 m out.
-    """
-    scans = list(load_scans(INTEL))[:n_scans]
-    config = MapConfig(dim=2, resolution=0.1, online=OnlineConfig(n_jobs=2))
-    return record(scans, config, rrd, default_blueprint(2, bounds=hit_bounds(scans)))
-
-
-def street(rrd: Path, n_scans: int) -> int:
+def street(rrd: Path, n_scans: int | None, flags: list[str]) -> int:
     """A simulated street of buildings, trees and poles (3D lidar, 0.2 m; hyperparameters learnt)."""
     from octolgp.sim.mission import simulate_mission3d
 
-    sim = simulate_mission3d(float(n_scans), n_azimuth=360, n_elevation=16)
-    config = MapConfig(dim=3, resolution=0.2, online=OnlineConfig(n_jobs=2))
-    return record((s.downsample(0.2) for s in sim.scans()), config, rrd, default_blueprint(3))
+    sim = simulate_mission3d(float(n_scans or 60), n_azimuth=360, n_elevation=16)
+    scans = [s.downsample(0.2) for s in sim.scans()]
+    log = rrd.with_suffix(".npz")
+    write_npz(log, scans)
+    run(log, rrd, ["--resolution", "0.2", *flags])
+    return len(scans)
+
+
+def _scan_count(rrd: Path) -> int:
+    from octolgp.io.rrd_read import read_rrd
+
+    return sum(1 for _ in read_rrd(rrd))
 
 
 def _free_port() -> int:
@@ -97,7 +86,7 @@ def screenshot(rrd: Path, last_scan: int, png: Path, *, settle: float) -> None:
     try:
         viewer.open(str(rrd))
         time.sleep(settle)  # let the viewer load the recording
-        viewer.set_time("scan", sequence=last_scan)
+        viewer.set_time("scan", sequence=last_scan, play_state="paused")
         time.sleep(settle)  # and draw the last scan's frame
         png.write_bytes(viewer.take_screenshot())
     finally:
@@ -113,20 +102,27 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=ROOT / "docs")
     parser.add_argument("--settle", type=float, default=6.0, help="seconds to let it draw")
     parser.add_argument("--keep", action="store_true", help="keep the .rrd files in --out")
+    parser.add_argument("--flags", default="", help="more `octolgp run` flags (one string)")
+    parser.add_argument("--suffix", default="", help="added to the screenshots' names")
+    parser.add_argument("--only", choices=["2d", "3d"], default=None, help="one of the two")
+    parser.add_argument("--at", type=int, default=None, help="scan to show (default: the last)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    flags = shlex.split(args.flags)
     with tempfile.TemporaryDirectory() as tmp:
         where = args.out if args.keep else Path(tmp)
-        for name in ("2d", "3d"):
-            rrd = where / f"rerun_{name}.rrd"
+        for name in ("2d", "3d") if args.only is None else (args.only,):
+            rrd = where / f"rerun_{name}{args.suffix}.rrd"
             t0 = time.perf_counter()
-            n = intel(rrd, args.scans) if name == "2d" else street(rrd, args.street)
+            make = intel if name == "2d" else street
+            n = make(rrd, args.scans if name == "2d" else args.street, flags)
             size = rrd.stat().st_size
             print(
                 f"{name}: {n} scans in {time.perf_counter() - t0:.0f} s, recording "
                 f"{size / 1e6:.1f} MB ({size / n / 1e3:.1f} kB per scan)"
             )
-            screenshot(rrd, n, args.out / f"rerun_{name}.png", settle=args.settle)
+            png = args.out / f"rerun_{name}{args.suffix}.png"
+            screenshot(rrd, n if args.at is None else args.at, png, settle=args.settle)
     return 0
 
 

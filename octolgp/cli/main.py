@@ -36,11 +36,15 @@ EXAMPLES = """examples:
   octolgp query intel.octolgp --raycast rays.npy --max-range 10 --out hits.csv
   octolgp export intel.octolgp --out intel.bt
   octolgp correct intel.octolgp --poses corrections.txt
+  octolgp correct intel.octolgp --absolute optimised_poses.txt
   octolgp bench paper2d --out bench_out
   octolgp eval data/intel_lab/intel-corrected.log.gz --seeds 5 --out eval_intel
   octolgp dump-config --resolution 0.05 > intel.toml
   octolgp run data/intel_lab/intel-corrected.log.gz --config intel.toml --out intel.octolgp
 """
+
+RERUN_COLORS = ("auto", "probability")
+"""``--rerun-colors`` choices: :data:`octolgp.sinks.rerun.COLORS` (not imported: rerun is heavy)."""
 
 
 def _positive_int(text: str) -> int:
@@ -139,6 +143,18 @@ def _mapping_options(p: argparse.ArgumentParser) -> None:
         "--rerun-rays", type=_nonnegative_int, default=0, help="log every k-th beam as a ray"
     )
     p.add_argument("--rerun-uncertainty", action="store_true", help="log the variance layer")
+    p.add_argument(
+        "--rerun-colors",
+        choices=RERUN_COLORS,
+        default="auto",
+        help="map colours: auto (2D grey occupancy, 3D height) or probability (P(occupied): "
+        "blue free, grey unknown, red occupied); a legend view shows which",
+    )
+    p.add_argument(
+        "--rerun-free-voxels",
+        action="store_true",
+        help="3D: also draw free voxels (P < 0.25; one in 8, at most 4,096 a 32-voxel region)",
+    )
 
 
 class _Parser(argparse.ArgumentParser):
@@ -310,14 +326,40 @@ def make_parser() -> argparse.ArgumentParser:
 
     correct = sub.add_parser(
         "correct",
-        help="move scans of a map file by corrected poses (a loop closure)",
-        description="Apply rigid corrections to journaled scans of a map file and rebuild "
-        "the leaves they reach, in one transaction. CORRECTIONS: one line per scan, its "
-        "number (from 1) then the transform, either the (d+1)x(d+1) matrix row by row or "
-        "a pose 'x y yaw' (2D) / 'tx ty tz qx qy qz qw' (3D); '#' starts a comment.",
+        help="move scans of a map file by corrected poses (a loop closure, a pose graph)",
+        description="Move journaled scans of a map file and rebuild the leaves they reach, in one\n"
+        "transaction. Only scans still in the journal (online.journal_scans) can move.\n\n"
+        "--poses FILE     per scan a correction: a rigid transform that moves its\n"
+        "                 world-frame origin and points.\n"
+        "--absolute FILE  per scan the sensor's new pose in the world frame, as a pose\n"
+        "                 graph optimiser writes it: scan i moves by T_new * T_old^-1,\n"
+        "                 T_old the pose it was inserted with (kept in the journal).\n\n"
+        "Either file has one line per scan: its number (from 1, as run counts scans),\n"
+        "then one of\n"
+        "  x y yaw                     2D pose (metres, radians)\n"
+        "  x y z qx qy qz qw           3D pose (TUM's order, scan number for the time)\n"
+        "  r11 r12 tx r21 r22 ty       2D matrix, top 2 rows (or all 9 entries)\n"
+        "  r11 r12 r13 tx ... r33 tz   3D matrix, top 3 rows as a KITTI poses line\n"
+        "                              (or all 16 entries)\n"
+        "'#' starts a comment; numbers are separated by spaces or commas.",
+        epilog="examples:\n"
+        "  octolgp correct intel.octolgp --poses corrections.txt\n"
+        "  # 2D pose graph output: '12 3.05 -1.20 0.013' (scan, x, y, yaw)\n"
+        "  octolgp correct intel.octolgp --absolute optimised.txt\n"
+        "  # 3D: '12 1.0 2.0 0.5 0 0 0.7071068 0.7071068' (scan, x y z, qx qy qz qw)\n"
+        "  octolgp correct street.octolgp --absolute optimised_tum.txt",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     correct.add_argument("map", help="map file written by run (it holds the scans' journal)")
-    correct.add_argument("--poses", required=True, help="corrections file (see above)")
+    which = correct.add_mutually_exclusive_group(required=True)
+    which.add_argument(
+        "--poses", metavar="FILE", help="corrections file: rigid transforms that move scans"
+    )
+    which.add_argument(
+        "--absolute",
+        metavar="FILE",
+        help="absolute sensor poses (a pose graph's optimised poses) the scans move to",
+    )
     correct.set_defaults(func=cmd_correct)
 
     bench = sub.add_parser("bench", help="reproduce the paper's Table II, Fig. 2-4")

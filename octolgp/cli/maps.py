@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -214,51 +215,80 @@ def cmd_export(args: argparse.Namespace) -> int:
             n = write(out, occupied)
             print(f"wrote {out}: {n} occupied voxel centres with P(occupied)")
             return 0
-        centres, prob = m.voxels()
         res = m.config.resolution
-    if out.suffix == ".pgm":
-        return _export_nav2(args, out, centres, prob, res, z_range)
-    if centres.shape[1] == 3:  # a height slice of a 3D map
-        z = args.z if args.z is not None else float(np.median(centres[:, 2]))
-        layer = np.floor(centres[:, 2] / res) == np.floor(z / res)
-        centres, prob = centres[layer, :2], prob[layer]
+        if out.suffix == ".pgm":  # one chunk of voxels at a time, merged into cells
+            return _export_nav2(args, out, m.voxel_chunks, m.config.dim, res, z_range)
+        if m.config.dim == 3:  # a height slice of a 3D map: its layer's voxels only
+            z = args.z if args.z is not None else median_height(m.voxel_chunks())
+            cells = [
+                (c[layer, :2], p[layer])
+                for c, p in m.voxel_chunks()
+                for layer in [np.floor(c[:, 2] / res) == np.floor(z / res)]
+            ]
+        else:
+            cells = list(m.voxel_chunks())
+    centres = np.concatenate([np.zeros((0, 2)), *(c for c, _ in cells)])
+    prob = np.concatenate([np.zeros(0), *(p for _, p in cells)])
     write_png(out, centres, prob, res)
     print(f"wrote {out}: {prob.size} voxels")
     return 0
 
 
+def median_height(chunks: Iterable[tuple[np.ndarray, np.ndarray]]) -> float:
+    """``np.median`` of the voxel centres' z over chunks of voxels, holding their heights' counts.
+
+    Raises
+    ------
+    OctolgpError
+        On no voxel.
+    """
+    import numpy as np
+
+    heights: dict[float, int] = {}
+    for centres, _ in chunks:  # one chunk per iteration: its distinct heights counted
+        z, n = np.unique(centres[:, 2], return_counts=True)
+        for value, count in zip(z.tolist(), n.tolist(), strict=True):  # one per layer
+            heights[value] = heights.get(value, 0) + count
+    if not heights:
+        raise OctolgpError("the map has no voxel to draw")
+    z_sorted = np.array(sorted(heights))
+    ends = np.cumsum([heights[v] for v in z_sorted.tolist()])
+    total = int(ends[-1])
+    middle = z_sorted[np.searchsorted(ends, [(total - 1) // 2, total // 2], side="right")]
+    return float(np.mean(middle))
+
+
 def _export_nav2(
     args: argparse.Namespace,
     out: Path,
-    centres: np.ndarray,
-    prob: np.ndarray,
+    chunks: Callable[[], Iterator[tuple[np.ndarray, np.ndarray]]],
+    dim: int,
     res: float,
     z_range: tuple[float, float] | None,
 ) -> int:
     """``octolgp export --out FILE.pgm``: a nav2 map, a 3D map sliced (--z) or projected."""
-    from octolgp.export.nav2 import write_nav2_map
+    from octolgp.export.nav2 import trinary_grid_chunks, write_nav2_grid
     from octolgp.export.nav2_read import read_nav2_map
 
     occupied, free = args.occupied_thresh, args.free_thresh
     if not free < occupied:
         raise OctolgpError(f"--free-thresh ({free}) must be below --occupied-thresh ({occupied})")
-    if centres.shape[1] == 3 and args.z is None and z_range is None:
+    if dim == 3 and args.z is None and z_range is None:
         raise OctolgpError(
             "a 3D map's nav2 export needs --z HEIGHT (a slice) or --z-range ZMIN ZMAX "
             "(a 2.5D projection)"
         )
-    if centres.shape[1] == 2 and (args.z is not None or z_range is not None):
+    if dim == 2 and (args.z is not None or z_range is not None):
         raise OctolgpError("--z and --z-range apply to 3D maps only; this map is 2D")
-    yaml = write_nav2_map(
-        out,
-        centres,
-        prob,
+    grid = trinary_grid_chunks(
+        chunks(),
         res,
         occupied_thresh=occupied,
         free_thresh=free,
-        z=args.z if centres.shape[1] == 3 else None,
+        z=args.z if dim == 3 else None,
         z_range=None if z_range is None else (z_range[0], z_range[1]),
     )
+    yaml = write_nav2_grid(out, grid, occupied_thresh=occupied, free_thresh=free)
     cells = read_nav2_map(yaml).cells
     counts = {name: int((cells == v).sum()) for name, v in (("occupied", 100), ("free", 0))}
     print(
@@ -269,15 +299,20 @@ def _export_nav2(
 
 
 def cmd_correct(args: argparse.Namespace) -> int:
-    """``octolgp correct``: apply pose corrections to a map file, in one transaction."""
-    from octolgp.io.corrections import read_corrections
+    """``octolgp correct``: move scans of a map file by corrections or to absolute poses."""
+    from octolgp.io.corrections import read_corrections, read_poses
     from octolgp.mapping.online import OnlineMap
 
     with OnlineMap.open(args.map) as m:
-        corrections = read_corrections(args.poses, m.config.dim)
-        update = m.correct_scans(corrections)
+        reach = range(m.journal_start + 1, m.n_scans + 1)
+        if args.absolute is not None:
+            poses = read_poses(args.absolute, m.config.dim, reach)
+            update, n = m.correct_poses(poses), len(poses)
+        else:
+            corrections = read_corrections(args.poses, m.config.dim, reach)
+            update, n = m.correct_scans(corrections), len(corrections)
     print(
-        f"corrected {len(corrections)} scans of {args.map}: {update.refit_leaves} leaves "
+        f"corrected {n} scans of {args.map}: {update.refit_leaves} leaves "
         f"rebuilt, {update.removed_leaves} removed, in {update.seconds:.2f} s"
     )
     return 0

@@ -71,6 +71,8 @@ def _sink(rec: Any, args: argparse.Namespace) -> Any:
         rec,
         rays=args.rerun_rays,
         uncertainty=args.rerun_uncertainty,
+        colors=args.rerun_colors,
+        free_voxels=args.rerun_free_voxels,
         blueprint=False,  # the recording has the CLI's default blueprint
         follow=True,  # which the sink bounds on the map as it grows
     )
@@ -152,7 +154,7 @@ def _check_journal(m: Any, scans: Iterator[Any], out: Path, source: str) -> Iter
     if n != m.n_scans:  # a journal holds every scan or none
         raise OctolgpError(
             f"--resume: {str(out)!r} keeps no journal of its {m.n_scans} scans (saved from "
-            f"memory), so it cannot be checked against {source}"
+            f"memory by an older version), so it cannot be checked against {source}"
         )
     return scans
 
@@ -302,7 +304,7 @@ def prepared(scan: Scan, max_range: float | None, downsample: float | None) -> S
 
     if max_range is not None:
         reach = max_range if scan.max_range is None else min(scan.max_range, max_range)
-        scan = Scan(origin=scan.origin, points=scan.points, max_range=reach, stamp=scan.stamp)
+        scan = Scan(scan.origin, scan.points, reach, scan.stamp, scan.rotation)
     return scan if downsample is None else scan.downsample(downsample)
 
 

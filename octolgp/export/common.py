@@ -14,7 +14,7 @@ import os
 import secrets
 import shutil
 import tempfile
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -226,14 +226,14 @@ def replacing(path: PathLike, *, sidecars: tuple[str, ...] = ()) -> Iterator[Pat
         raise
 
 
-def write_chunks(path: PathLike, chunks: list[bytes]) -> None:
+def write_chunks(path: PathLike, chunks: Sequence[bytes | memoryview]) -> None:
     """Write ``chunks`` to a new file ``path`` (no rename; see :func:`write_bytes`)."""
     with open(path, "wb") as f:
         for chunk in chunks:  # one write per chunk
             f.write(chunk)
 
 
-def write_bytes(path: PathLike, chunks: list[bytes]) -> None:
+def write_bytes(path: PathLike, chunks: Sequence[bytes | memoryview]) -> None:
     """Write ``chunks`` to ``path`` through a temporary file (:func:`replacing`).
 
     Raises

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
@@ -135,6 +136,39 @@ def _merge(cells: NDArray[np.int64], states: Int8Array) -> tuple[NDArray[np.int6
     return unique, merged
 
 
+def _slice(
+    c: FloatArray, resolution: float, z: float | None, z_range: tuple[float, float] | None
+) -> NDArray[np.bool_]:
+    """Which voxels a 2D map's cells, or a 3D map's slice or projection, take (checks the arguments)."""
+    if c.shape[1] == 2:
+        if z is not None or z_range is not None:
+            raise OctolgpError("z and z_range apply to 3D maps only; this map is 2D")
+        return np.ones(c.shape[0], dtype=bool)
+    if (z is None) == (z_range is None):
+        raise OctolgpError(
+            "a 3D map needs exactly one of z (a height slice) or z_range (a 2.5D projection)"
+        )
+    if z is not None:
+        if not math.isfinite(z):
+            raise OctolgpError(f"z must be finite, got {z!r}")
+        out: NDArray[np.bool_] = np.floor(c[:, 2] / resolution) == math.floor(z / resolution)
+        return out
+    assert z_range is not None
+    lo, hi = (float(v) for v in z_range)
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise OctolgpError(f"z_range must be finite (zmin, zmax) with zmin <= zmax, got {z_range}")
+    band: NDArray[np.bool_] = (c[:, 2] >= lo) & (c[:, 2] <= hi)
+    return band
+
+
+def _empty_slice(z: float | None, z_range: tuple[float, float] | None) -> OctolgpError:
+    if z is not None:
+        return OctolgpError(f"no voxel in the height slice z = {z:g} m")
+    assert z_range is not None
+    lo, hi = (float(v) for v in z_range)
+    return OctolgpError(f"no voxel centre in z_range [{lo:g}, {hi:g}] m")
+
+
 def project_cells(
     centres: ArrayLike,
     states: ArrayLike,
@@ -178,31 +212,10 @@ def project_cells(
     if s.shape != (c.shape[0],) or s.dtype.kind not in "iu":
         raise OctolgpError(f"states must be integers of shape ({c.shape[0]},), got {s.shape}")
     s = s.astype(np.int8)
-    if c.shape[1] == 2:
-        if z is not None or z_range is not None:
-            raise OctolgpError("z and z_range apply to 3D maps only; this map is 2D")
-    elif (z is None) == (z_range is None):
-        raise OctolgpError(
-            "a 3D map needs exactly one of z (a height slice) or z_range (a 2.5D projection)"
-        )
-    elif z is not None:
-        if not math.isfinite(z):
-            raise OctolgpError(f"z must be finite, got {z!r}")
-        layer = np.floor(c[:, 2] / resolution) == math.floor(z / resolution)
-        if not layer.any():
-            raise OctolgpError(f"no voxel in the height slice z = {z:g} m")
-        c, s = c[layer], s[layer]
-    else:
-        assert z_range is not None
-        lo, hi = (float(v) for v in z_range)
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
-            raise OctolgpError(
-                f"z_range must be finite (zmin, zmax) with zmin <= zmax, got {z_range}"
-            )
-        band = (c[:, 2] >= lo) & (c[:, 2] <= hi)
-        if not band.any():
-            raise OctolgpError(f"no voxel centre in z_range [{lo:g}, {hi:g}] m")
-        c, s = c[band], s[band]
+    inside = _slice(c, resolution, z, z_range)
+    if c.shape[1] == 3 and not inside.any():
+        raise _empty_slice(z, z_range)
+    c, s = c[inside], s[inside]
     cells, merged = _merge(np.floor(c[:, :2] / resolution).astype(np.int64), s)
     return np.asarray((cells + 0.5) * resolution, dtype=np.float64), merged
 
@@ -252,14 +265,64 @@ def trinary_grid(
     OctolgpError
         On bad arrays, thresholds or slice arguments, no voxel, or more than 10^8 cells.
     """
-    c = as_centres(centres, (2, 3))
-    states = cell_states(
-        as_prob(prob, c.shape[0]), occupied_thresh=occupied_thresh, free_thresh=free_thresh
+    return trinary_grid_chunks(
+        [(centres, prob)],
+        resolution,
+        occupied_thresh=occupied_thresh,
+        free_thresh=free_thresh,
+        z=z,
+        z_range=z_range,
     )
-    cells_xy, cell_state = project_cells(c, states, resolution, z=z, z_range=z_range)
-    if not cells_xy.shape[0]:
+
+
+def trinary_grid_chunks(
+    chunks: Iterable[tuple[ArrayLike, ArrayLike]],
+    resolution: float,
+    *,
+    occupied_thresh: float = 0.65,
+    free_thresh: float = 0.25,
+    z: float | None = None,
+    z_range: tuple[float, float] | None = None,
+) -> TrinaryGrid:
+    """:func:`trinary_grid` of a map read in chunks of voxels (``MapReads.voxel_chunks``).
+
+    Each chunk is thresholded and merged into its cells on its own (a cell is occupied
+    if any of its voxels is, else free if any is), so what is held is one chunk and
+    the cells; the grid is that of the chunks concatenated.
+
+    Parameters
+    ----------
+    chunks : iterable of (centres, prob)
+        Voxel centres, shape (k, 2) or (k, 3), and P(occupied), shape (k,).
+    resolution, occupied_thresh, free_thresh, z, z_range
+        As :func:`write_nav2_map`.
+
+    Raises
+    ------
+    OctolgpError
+        As :func:`trinary_grid`.
+    """
+    addressable_range(resolution, 16)  # raises on a bad resolution
+    _thresholds(occupied_thresh, free_thresh)
+    cells, states, dim = [], [], 0
+    for centres, prob in chunks:  # one chunk of voxels per iteration
+        c = as_centres(centres, (2, 3))
+        dim = c.shape[1]
+        s = cell_states(
+            as_prob(prob, c.shape[0]), occupied_thresh=occupied_thresh, free_thresh=free_thresh
+        )
+        inside = _slice(c, resolution, z, z_range)
+        index, merged = _merge(np.floor(c[inside, :2] / resolution).astype(np.int64), s[inside])
+        cells.append(index)
+        states.append(merged)
+    index, cell_state = _merge(
+        np.concatenate([np.zeros((0, 2), np.int64), *cells]),
+        np.concatenate([np.zeros(0, np.int8), *states]),
+    )
+    if not index.shape[0]:
+        if dim == 3:
+            raise _empty_slice(z, z_range)
         raise OctolgpError("nav2 map: the map has no voxel to write")
-    index = np.floor(cells_xy / resolution).astype(np.int64)
     low = index.min(axis=0)
     nx, ny = (index.max(axis=0) - low + 1).tolist()
     if nx * ny > _MAX_CELLS:
@@ -311,9 +374,7 @@ def write_nav2_map(
         On a ``path`` not ending in ``.pgm``, bad arrays, thresholds or slice arguments, a
         map wider than 10^8 cells, or files that cannot be written.
     """
-    pgm = Path(path)
-    if pgm.suffix.lower() != ".pgm":
-        raise OctolgpError(f"nav2 map: path must end in .pgm, got {os.fspath(path)!r}")
+    _pgm_path(path)
     cells = trinary_grid(
         centres,
         prob,
@@ -323,6 +384,31 @@ def write_nav2_map(
         z=z,
         z_range=z_range,
     )
+    return write_nav2_grid(path, cells, occupied_thresh=occupied_thresh, free_thresh=free_thresh)
+
+
+def _pgm_path(path: PathLike) -> Path:
+    pgm = Path(path)
+    if pgm.suffix.lower() != ".pgm":
+        raise OctolgpError(f"nav2 map: path must end in .pgm, got {os.fspath(path)!r}")
+    return pgm
+
+
+def write_nav2_grid(
+    path: PathLike, cells: TrinaryGrid, *, occupied_thresh: float, free_thresh: float
+) -> Path:
+    """Write a :class:`TrinaryGrid` as ``FILE.pgm`` and ``FILE.yaml`` (:func:`write_nav2_map`).
+
+    ``occupied_thresh`` and ``free_thresh`` are the map's thresholds the grid was made
+    with, noted in the YAML; the YAML's own are the loader's.
+
+    Returns
+    -------
+    Path
+        The YAML file.
+    """
+    pgm = _pgm_path(path)
+    resolution = cells.resolution
     ny, nx = cells.data.shape
     # state -> pixel: FREE 0 -> 254, OCCUPIED 100 -> 0, UNKNOWN -1 -> 205
     grid = np.full((ny, nx), _PIXEL[UNKNOWN], dtype=np.uint8)

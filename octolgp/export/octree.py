@@ -96,10 +96,13 @@ class Level:
     states: NDArray[np.uint16]  # .bt 2-bit child states, 0 for leaves
 
 
-def build_tree(keys16: IntArray, values: NDArray[np.float32]) -> list[Level]:
-    """Build the pruned tree over leaf voxels; ``levels[d]`` holds the nodes at depth ``d``.
+def build_tree(keys16: IntArray, values: NDArray[np.float32], top: int = 0) -> list[Level]:
+    """Build the pruned tree over leaf voxels; ``levels[d - top]`` holds the nodes at depth ``d``.
 
-    A leaf's .bt state is occupied when its value is positive. Raises on duplicate keys.
+    A leaf's .bt state is occupied when its value is positive. With ``top > 0`` the
+    tree stops at depth ``top``: the subtrees below are exact, but whether a node at
+    depth ``top`` is pruned into its parent is left to :func:`grow_tree` on the
+    nodes of every such subtree. Raises on duplicate keys.
     """
     code = morton(keys16)
     order = np.argsort(code)
@@ -107,8 +110,19 @@ def build_tree(keys16: IntArray, values: NDArray[np.float32]) -> list[Level]:
     if code.size > 1 and (code[1:] == code[:-1]).any():
         raise OctolgpError("keys must be unique, got duplicate voxels")
     n = code.size
-    levels = [Level(code, values, np.zeros(n, bool), np.zeros(n, np.uint8), np.zeros(n, np.uint16))]
-    for depth in range(DEPTH, 0, -1):
+    leaves = Level(code, values, np.zeros(n, bool), np.zeros(n, np.uint8), np.zeros(n, np.uint16))
+    return grow_tree(leaves, DEPTH, top)
+
+
+def grow_tree(nodes: Level, depth: int, top: int) -> list[Level]:
+    """The pruned tree above the nodes at ``depth``, up to ``top``; ``levels[d - top]`` at depth ``d``.
+
+    ``nodes`` are sorted by code and unique. Groups of eight leaf siblings of equal
+    value are pruned into their parent level by level (OctoMap's ``prune()``, never
+    into the root), so ``levels[-1]`` may hold fewer nodes than ``nodes``.
+    """
+    levels = [nodes]
+    for d in range(depth, top, -1):
         nodes = levels[-1]
         # Group the nodes of this depth by parent (codes are sorted, so groups are runs).
         slot = (nodes.code & 7).astype(np.int64)
@@ -124,7 +138,7 @@ def build_tree(keys16: IntArray, values: NDArray[np.float32]) -> list[Level]:
         low = np.minimum.reduceat(nodes.value, starts)
         any_inner = np.logical_or.reduceat(nodes.inner, starts)
         # OcTreeBaseImpl::isNodeCollapsible: eight leaf children of equal value (never the root).
-        collapse = (n_children == 8) & ~any_inner & (high == low) & (depth > 1)
+        collapse = (n_children == 8) & ~any_inner & (high == low) & (d > 1)
         if collapse.any():
             keep = ~np.repeat(collapse, n_children)
             levels[-1] = Level(
@@ -147,14 +161,15 @@ def build_tree(keys16: IntArray, values: NDArray[np.float32]) -> list[Level]:
     return levels
 
 
-def depth_first(levels: list[Level], inner_only: bool) -> NDArray[np.int64]:
+def depth_first(levels: list[Level], inner_only: bool, top: int = 0) -> NDArray[np.int64]:
     """Return the permutation putting the levels' nodes (concatenated) in depth-first order.
 
-    A node's first descendant leaf has the node's code padded to depth 16; sorting on
-    ``(padded code, depth)`` puts every node right before its subtree (pre-order).
+    ``levels[i]`` holds the nodes at depth ``top + i``. A node's first descendant leaf
+    has the node's code padded to depth 16; sorting on ``(padded code, depth)`` puts
+    every node right before its subtree (pre-order).
     """
     sort_keys = []
-    for depth, level in enumerate(levels):
+    for depth, level in enumerate(levels, start=top):
         code = level.code[level.inner] if inner_only else level.code
         sort_keys.append((code << (3 * (DEPTH - depth))) << 5 | depth)
     order: NDArray[np.int64] = np.argsort(np.concatenate(sort_keys))

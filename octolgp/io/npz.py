@@ -8,6 +8,7 @@ array           shape       dtype   meaning
 ``offsets``     ``(S+1,)``  int64   scan ``i`` is ``points[offsets[i]:offsets[i+1]]``
 ``max_range``   ``(S,)``    float64 optional no-return threshold; NaN means none
 ``stamps``      ``(S,)``    float64 optional time, seconds; NaN means none
+``rotations``   ``(S,d,d)`` float64 optional sensor orientation (``Scan.rotation``); NaN: none
 ``truth_points````(M, d)``  float64 optional ground-truth test positions, m
 ``truth_labels````(M,)``    int8    optional, 1 occupied / 0 free
 =============== =========== ======= =============================================
@@ -34,12 +35,12 @@ from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.io import limits
-from octolgp.scan import FloatArray, Scan
+from octolgp.scan import FloatArray, Scan, nearest_rotation
 
 __all__ = ["read_npz", "read_truth", "write_npz"]
 
 _REQUIRED = ("origins", "points", "offsets")
-_OPTIONAL = ("max_range", "stamps", "truth_points", "truth_labels")
+_OPTIONAL = ("max_range", "stamps", "rotations", "truth_points", "truth_labels")
 _NPY_MAGIC = b"\x93NUMPY"
 
 
@@ -167,8 +168,14 @@ def _float_array(
 
 def _validate(
     path: Path, arrays: dict[str, NDArray[np.generic]]
-) -> tuple[FloatArray, FloatArray, NDArray[np.int64], FloatArray, FloatArray]:
-    """Check shapes, dtypes and offsets; return ``origins, points, offsets, max_range, stamps``."""
+) -> tuple[
+    FloatArray, FloatArray, NDArray[np.int64], FloatArray, FloatArray, list[FloatArray | None]
+]:
+    """Check shapes, dtypes and offsets.
+
+    Returns ``origins, points, offsets, max_range, stamps, rotations`` (a rotation per
+    scan, ``None`` where the log gives none).
+    """
     origins = _float_array(path, arrays, "origins", (None, None))
     S, d = origins.shape
     if d not in (2, 3):
@@ -197,7 +204,17 @@ def _validate(
         raise _fail(path, "max_range", "must hold values > 0 (NaN for none)")
     if np.isinf(stamps).any():
         raise _fail(path, "stamps", "contains inf (NaN means no stamp)")
-    return origins, points, offsets, max_range, stamps
+    rotations: list[FloatArray | None] = [None] * S
+    if "rotations" in arrays:
+        given = _float_array(path, arrays, "rotations", (S, d, d))
+        for i in range(S):  # one small matrix per scan
+            if np.isnan(given[i]).all():
+                continue
+            try:
+                rotations[i] = nearest_rotation(given[i], d, f"row {i}")
+            except OctolgpError as exc:
+                raise _fail(path, "rotations", f"{exc} (all NaN for none)") from None
+    return origins, points, offsets, max_range, stamps, rotations
 
 
 def read_npz(path: str | Path) -> Iterator[Scan]:
@@ -212,7 +229,7 @@ def read_npz(path: str | Path) -> Iterator[Scan]:
     -------
     Iterator of Scan
         One scan per row of ``origins``, in file order. A NaN ``max_range`` or
-        ``stamp`` becomes ``None``.
+        ``stamp``, or an all-NaN rotation, becomes ``None``.
 
     Raises
     ------
@@ -223,7 +240,7 @@ def read_npz(path: str | Path) -> Iterator[Scan]:
         shape, dtype or value; the message names the array and the file.
     """
     p = Path(path)
-    origins, points, bounds, max_range, stamps = _validate(p, _load_arrays(p))
+    origins, points, bounds, max_range, stamps, rotations = _validate(p, _load_arrays(p))
 
     def scans() -> Iterator[Scan]:
         for i in range(origins.shape[0]):
@@ -233,6 +250,7 @@ def read_npz(path: str | Path) -> Iterator[Scan]:
                 points=points[bounds[i] : bounds[i + 1]],
                 max_range=None if np.isnan(mr) else mr,
                 stamp=None if np.isnan(st) else st,
+                rotation=rotations[i],
             )
 
     return scans()
@@ -274,7 +292,8 @@ def write_npz(
     path : str or Path
         Output file; written as given (no ``.npz`` is appended).
     scans : iterable of Scan
-        At least one scan, all of the same dimension ``d``.
+        At least one scan, all of the same dimension ``d``. Their rotations are written
+        (``rotations``) when any has one.
     truth_points : array_like of shape (M, d), optional
         Ground-truth test positions, world frame, metres.
     truth_labels : array_like of shape (M,), optional
@@ -301,6 +320,11 @@ def write_npz(
         "max_range": np.array([np.nan if s.max_range is None else s.max_range for s in scan_list]),
         "stamps": np.array([np.nan if s.stamp is None else s.stamp for s in scan_list]),
     }
+    if any(s.rotation is not None for s in scan_list):  # the sensor poses, for correct_poses
+        none = np.full((d, d), np.nan)
+        arrays["rotations"] = np.stack(
+            [none if s.rotation is None else s.rotation for s in scan_list]
+        )
     if (truth_points is None) != (truth_labels is None):
         raise OctolgpError("write_npz: give truth_points and truth_labels together")
     if truth_points is not None and truth_labels is not None:

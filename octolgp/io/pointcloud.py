@@ -318,4 +318,4 @@ class CloudReader(ScanStream):
                 points = points @ rotation.T
             if origin.any():
                 points = points + origin
-        return Scan(origin=origin.copy(), points=points, max_range=self.max_range)
+        return Scan(origin.copy(), points, self.max_range, rotation=rotation)

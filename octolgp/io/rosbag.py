@@ -63,7 +63,7 @@ from octolgp.geometry.rotations import quaternion_to_matrix
 from octolgp.io.base import ScanStream
 from octolgp.io.carmen import NO_RETURN_MARGIN
 from octolgp.ros_msgs import RosMessageError, laserscan_beams, pointcloud2_points
-from octolgp.scan import FloatArray, Scan
+from octolgp.scan import FloatArray, Scan, pose_rotation
 
 __all__ = [
     "NO_RETURN_MARGIN",
@@ -589,9 +589,11 @@ class RosbagReader(ScanStream):
             yaw = math.atan2(T_world[1, 0], T_world[0, 0])
             pose = np.array([T_world[0, 3], T_world[1, 3], yaw])
             beams = laserscan_beams(msg, pose, max_range=self.max_range)
+            rotation = pose_rotation(pose, 2)
         else:
             beams = pointcloud2_points(msg, T_world, max_range=self.max_range)
-        return None if beams is None else Scan(*beams, seconds)
+            rotation = pose_rotation(T_world, 3)
+        return None if beams is None else Scan(*beams, seconds, rotation)
 
 
 def _static(topic: str) -> bool:

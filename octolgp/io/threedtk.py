@@ -289,7 +289,7 @@ class ThreeDTKReader(ScanStream):
             M = T[:3, :3] @ LH_TO_RH * CM
             points = xyz[keep] @ M.T + T[:3, 3]
             max_range = self.max_range if math.isfinite(self.max_range) else None
-            yield Scan(origin=T[:3, 3].copy(), points=points, max_range=max_range)
+            yield Scan(T[:3, 3].copy(), points, max_range, rotation=T[:3, :3])
 
 
 def read_3dtk(

@@ -3,7 +3,9 @@
 What :meth:`octolgp.mapping.online.OnlineMap.correct_scans` computes before it writes.
 A correction maps a scan's number (from 1, as in ``ScanUpdate.scan``) to a rigid transform, a
 ``(d+1, d+1)`` homogeneous matrix ``T = [[R, t], [0, 1]]`` applied to the scan's
-world-frame origin and points (``p' = R p + t``). The map then rebuilds exactly the
+world-frame origin and points (``p' = R p + t``). A pose graph's new absolute pose
+``T_new`` of a scan taken from ``T_old`` is the correction ``T_new · T_old⁻¹``
+(:func:`pose_corrections`). The map then rebuilds exactly the
 leaves that either version of a corrected scan touches, from every journaled scan
 whose extent reaches them (:func:`scan_extents`, :func:`overlapping_scans`).
 """
@@ -20,7 +22,7 @@ from octolgp.engines.base import LeafEngine
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import unpack_keys
 from octolgp.mapping.grid import LeafGrid
-from octolgp.mapping.store import MapStorage
+from octolgp.mapping.store import ScanJournal
 from octolgp.scan import FloatArray, Scan
 
 RIGID_TOLERANCE = 1e-6
@@ -29,17 +31,21 @@ RIGID_TOLERANCE = 1e-6
 IntArray = NDArray[np.int64]
 
 
-def check_corrections(corrections: object, n_scans: int, dim: int) -> dict[int, FloatArray]:
+def check_corrections(
+    corrections: object, n_scans: int, dim: int, name: str = "corrections"
+) -> dict[int, FloatArray]:
     """Validate corrections: scan numbers in ``1..n_scans``, rigid ``(d+1, d+1)`` matrices.
 
     Parameters
     ----------
     corrections : mapping of int to array_like
-        Scan number → homogeneous transform.
+        Scan number → homogeneous transform (a correction, or a sensor pose).
     n_scans : int
         Scans in the map's journal.
     dim : int
         The map's dimension ``d``.
+    name : str
+        The argument's name in messages (``corrections``, ``poses``).
 
     Returns
     -------
@@ -55,17 +61,17 @@ def check_corrections(corrections: object, n_scans: int, dim: int) -> dict[int, 
     """
     if not isinstance(corrections, Mapping):
         raise OctolgpError(
-            f"corrections must be a mapping of scan number to transform, "
+            f"{name} must be a mapping of scan number to transform, "
             f"got {type(corrections).__name__}"
         )
     out: dict[int, FloatArray] = {}
     for key in sorted(corrections, key=lambda k: (not isinstance(k, int), str(k))):
         if not isinstance(key, int | np.integer) or isinstance(key, bool):
-            raise OctolgpError(f"corrections: scan number {key!r} is not an integer")
+            raise OctolgpError(f"{name}: scan number {key!r} is not an integer")
         index = int(key)
         if not 1 <= index <= n_scans:
-            raise OctolgpError(f"corrections: scan {index} is not in the map (scans 1..{n_scans})")
-        out[index] = check_transform(corrections[key], dim, f"corrections[{index}]")
+            raise OctolgpError(f"{name}: scan {index} is not in the map (scans 1..{n_scans})")
+        out[index] = check_transform(corrections[key], dim, f"{name}[{index}]")
     return dict(sorted(out.items()))
 
 
@@ -102,7 +108,8 @@ def check_transform(value: object, dim: int, name: str) -> FloatArray:
 def transform_scan(scan: Scan, T: FloatArray) -> Scan:
     """The scan with its origin and points moved by the rigid transform ``T``.
 
-    Ranges are kept, so no-returns stay no-returns; ``max_range`` and ``stamp`` are kept.
+    Ranges are kept, so no-returns stay no-returns; ``max_range`` and ``stamp`` are kept,
+    and the sensor's ``rotation``, when the scan has one, turns with it (``R · rotation``).
     """
     d = scan.dim
     R, t = T[:d, :d], T[:d, d]
@@ -111,7 +118,51 @@ def transform_scan(scan: Scan, T: FloatArray) -> Scan:
         points=scan.points @ R.T + t,
         max_range=scan.max_range,
         stamp=scan.stamp,
+        rotation=None if scan.rotation is None else R @ scan.rotation,
     )
+
+
+def pose_corrections(
+    old: Mapping[int, Scan], poses: Mapping[int, FloatArray], name: str = "poses"
+) -> dict[int, FloatArray]:
+    """The corrections that move scans to new absolute sensor poses: ``T_new · T_old⁻¹``.
+
+    Parameters
+    ----------
+    old : mapping of int to Scan
+        The scans as journaled, by number; each must have its sensor rotation
+        (:attr:`octolgp.Scan.rotation`), so ``T_old`` is :attr:`octolgp.Scan.pose`.
+    poses : mapping of int to ndarray of shape (d+1, d+1)
+        The new sensor poses (sensor to world frame, rigid), by the same numbers.
+    name : str
+        The argument's name in messages.
+
+    Returns
+    -------
+    dict of int to ndarray of shape (d+1, d+1)
+        The rigid corrections, by number: ``R = R_new R_oldᵀ``, ``t = t_new - R t_old``.
+
+    Raises
+    ------
+    OctolgpError
+        Naming the first scan journaled without its rotation.
+    """
+    out: dict[int, FloatArray] = {}
+    for i, T_new in poses.items():  # one small matrix product per scan
+        scan = old[i]
+        if scan.rotation is None:
+            raise OctolgpError(
+                f"{name}[{i}]: scan {i} was journaled without its sensor rotation (Scan.rotation: "
+                "a scan made from points alone, or a map file written before the journal kept "
+                "rotations), so the pose it was inserted with is unknown; give correction "
+                "transforms instead (correct_scans, octolgp correct --poses)"
+            )
+        d = scan.dim
+        R = T_new[:d, :d] @ scan.rotation.T
+        T = np.eye(d + 1)
+        T[:d, :d], T[:d, d] = R, T_new[:d, d] - R @ scan.origin
+        out[i] = T
+    return out
 
 
 def scan_extents(scans: list[Scan], grid: LeafGrid) -> IntArray:
@@ -168,7 +219,7 @@ class JournalExtents:
 
     Read from the journal on the first correction, then extended as scans are journaled,
     so a later correction reads only the scans that reach what it moves. Row ``j`` is
-    scan ``start + j + 1``, ``start`` the journal's (``MapStorage.journal_start``).
+    scan ``start + j + 1``, ``start`` the journal's (``ScanJournal.journal_start``).
     """
 
     def __init__(self, grid: LeafGrid) -> None:
@@ -176,7 +227,7 @@ class JournalExtents:
         self._boxes: IntArray | None = None
         self._start = 0
 
-    def read(self, storage: MapStorage, n_scans: int) -> tuple[int, IntArray]:
+    def read(self, storage: ScanJournal, n_scans: int) -> tuple[int, IntArray]:
         """The journal's start and the extents of its scans (read once, a copy)."""
         start = storage.journal_start
         if self._boxes is None or self._start != start or self._boxes.shape[0] != n_scans - start:
@@ -219,7 +270,7 @@ class Replay:
 
 
 def plan_replay(
-    storage: MapStorage,
+    storage: ScanJournal,
     start: int,
     extents: IntArray,
     old: Mapping[int, Scan],
@@ -231,8 +282,8 @@ def plan_replay(
 
     Parameters
     ----------
-    storage : MapStorage
-        The map file holding the journal.
+    storage : ScanJournal
+        The map's journal: its file, or RAM.
     start : int
         The journal holds the scans after this one.
     extents : ndarray of int64, shape (journaled scans, 2, d)

@@ -53,6 +53,7 @@ from octolgp.mapping.correction import (
     check_corrections,
     moved_extents,
     plan_replay,
+    pose_corrections,
     transform_scan,
 )
 from octolgp.mapping.evidence import (
@@ -64,10 +65,11 @@ from octolgp.mapping.evidence import (
 )
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.query import MapReads, leaves_read
-from octolgp.mapping.store import Leaf, LeafStore, MapStorage
+from octolgp.mapping.store import Leaf, LeafStore, MapStorage, ScanJournal
 from octolgp.mapping.update import ScanUpdate
 from octolgp.mapping.workers import Workers, collector_paused
 from octolgp.memory import release_free_memory
+from octolgp.persist.memory import MemoryJournal
 from octolgp.scan import FloatArray, Scan
 from octolgp.sinks.base import LeafView, MapChange, NullSink, Sink
 from octolgp.training import check_scans
@@ -144,6 +146,11 @@ class OnlineMap(MapReads):
     storage : MapStorage, optional
         An opened map file whose state this map takes over (what :meth:`open`
         passes); ``config`` must be the file's.
+    journal : bool, default True
+        A map without a file keeps its scans' journal in RAM, so that it can be
+        corrected (Notes); ``False`` spares that RAM, and corrections are then
+        refused. A map file (or a budget's spill file) keeps the journal whatever
+        this says.
 
     Notes
     -----
@@ -154,6 +161,15 @@ class OnlineMap(MapReads):
     every ``insert_scan`` is durable when it returns (one SQLite transaction), and
     this map is the file's one writer until :meth:`close`
     (:mod:`octolgp.persist.mapfile` says what the file survives).
+
+    The scans' journal, which pose corrections (:meth:`correct_scans`,
+    :meth:`correct_poses`) replay, is kept in the map file (the spill file under a
+    budget) or, for a map without either, in RAM
+    (:class:`octolgp.persist.memory.MemoryJournal`, in the file's encodings, so a
+    correction gives the same map either way). It holds the latest
+    ``OnlineConfig.journal_scans`` to twice that many scans, compressed (about 1 to 4
+    bytes per beam at ``scan_precision`` 0.01 m, float64 without it), and per checkpoint the
+    evidence records of the leaves changed since; :attr:`journal_bytes` says how much.
 
     Several threads may share a map: its calls take turns (one lock per map), and a
     read sees the map between two calls. After :meth:`close` every call is refused.
@@ -180,6 +196,7 @@ class OnlineMap(MapReads):
         recording: Any = None,
         sink: Sink | None = None,
         storage: MapStorage | None = None,
+        journal: bool = True,
     ) -> None:
         if config is None:
             config = MapConfig()
@@ -202,6 +219,7 @@ class OnlineMap(MapReads):
         self._bootstrap: Bootstrap[OnlineMap] = Bootstrap(self.config)
         self._workers = Workers(self.config.n_jobs)
         self._extents = JournalExtents(self.grid)
+        self._ram_journal: MemoryJournal | None = None  # the journal of a map without a file
         self._lock = threading.RLock()
         self._closed = False
         self._broken: str | None = None  # why the map refuses every call
@@ -220,6 +238,8 @@ class OnlineMap(MapReads):
                 else MapFile.spill(self.config)
             )
             self.store.attach(self._file, [], self._fitted)
+        elif journal:
+            self._ram_journal = MemoryJournal(self.config, self.store.peek)
 
     def _resume(self, storage: MapStorage) -> None:
         """Take over the state recorded in an opened map file."""
@@ -308,10 +328,11 @@ class OnlineMap(MapReads):
             own = None if f is None else f.path
             leaves = self.leaves()  # none while learning: the file keeps the buffered scans
             hp, n = self.hyperparameters, self.n_scans
+            kept = self._journal_source
             journal = (
                 enumerate(self._bootstrap.scans, start=1)
-                if f is None
-                else f.journal(f.journal_start)
+                if kept is None
+                else kept.journal(kept.journal_start)
             )
             write_map(
                 path,
@@ -320,8 +341,8 @@ class OnlineMap(MapReads):
                 n,
                 leaves,
                 journal,
-                checkpoints=None if f is None else f.checkpoints,
-                checkpoint_rows=() if f is None else f.checkpoint_rows(),
+                checkpoints=None if kept is None else kept.checkpoints,
+                checkpoint_rows=() if kept is None else kept.checkpoint_rows(),
                 overwrite=overwrite,
                 own=own,
             )
@@ -418,18 +439,30 @@ class OnlineMap(MapReads):
     def scans(self) -> Iterator[Scan]:
         """The journaled scans, in order: scans ``journal_start + 1`` to ``n_scans``.
 
-        A map file's journal keeps every scan, or with ``OnlineConfig.journal_scans``
-        the latest ones; a map without a file keeps only the scans it is still buffering.
+        The journal keeps every scan, or with ``OnlineConfig.journal_scans`` the latest
+        ones; a map without a file keeps it in RAM.
         """
         self._check("scans")
-        if self._file is not None:
-            return self._file.scans(self._file.journal_start)
+        kept = self._journal_source
+        if kept is not None:
+            return kept.scans(kept.journal_start)
         return iter(list(self._bootstrap.scans))
 
     @property
     def journal_start(self) -> int:
         """:meth:`scans` begins after this scan (0: with the first)."""
-        return 0 if self._file is None else self._file.journal_start
+        kept = self._journal_source
+        return 0 if kept is None else kept.journal_start
+
+    @property
+    def journal_bytes(self) -> int:
+        """Bytes of RAM the journal of a map without a file holds (0 with a file)."""
+        return 0 if self._ram_journal is None else self._ram_journal.nbytes
+
+    @property
+    def _journal_source(self) -> ScanJournal | None:
+        """Where the scans' journal is kept: the map file, RAM, or nowhere."""
+        return self._file if self._file is not None else self._ram_journal
 
     @property
     def provisional(self) -> bool:
@@ -484,7 +517,19 @@ class OnlineMap(MapReads):
                 return update
         else:
             self._journal([(index, scan)])
-        return self._buffered_update(t0)
+        update = self._buffered_update(t0)
+        show = getattr(self.sink, "on_provisional", None)  # optional in a sink
+        if show is not None:
+            show(update, self._provisional_change)
+        return update
+
+    def _provisional_change(self) -> MapChange:
+        """Every leaf of the provisional map of the buffered scans, as a sink sees leaves."""
+        return self._bootstrap.provisional(_provisional_map).full_change()
+
+    def full_change(self) -> MapChange:
+        """Every leaf of the map with its values, as a sink sees the leaves a step refitted."""
+        return self._change(self.leaves())
 
     def _journal(self, journal: list[tuple[int, Scan]]) -> None:
         """Journal scans that change no leaf (buffered to learn on), then show them."""
@@ -651,7 +696,7 @@ class OnlineMap(MapReads):
                 fits = self._fit([leaf for _, leaf in found])
                 fitted = [(k, f.leaf) for (k, _), f in zip(found, fits, strict=True)]
                 if self._file is None:
-                    self._write(fitted)
+                    self._write(fitted, settled=True)
                 else:  # the file keeps their unchanged evidence: the values live in RAM
                     self.store.apply(fitted)
                     self.store.persisted([k for k, _ in fitted])
@@ -670,7 +715,8 @@ class OnlineMap(MapReads):
         hyperparameters), at a cost that grows with the leaves and scans the
         correction reaches, not with the mission. The journal then holds the
         corrected scans; with a map file it is one transaction (a kill leaves the map
-        before or after the correction).
+        before or after the correction). A map without a file keeps its journal in
+        RAM (the class's Notes), so it corrects the same way, to the same map.
 
         Parameters
         ----------
@@ -688,15 +734,59 @@ class OnlineMap(MapReads):
         ------
         OctolgpError
             On an unknown scan number, a matrix of the wrong size, non-finite or not
-            rigid, or a map without a journal (one made without a ``path`` and without
-            a memory budget keeps no scans); the map is then unchanged.
+            rigid, a scan older than the journal (``OnlineConfig.journal_scans``), or a
+            map file saved without a journal; the map is then unchanged.
         """
         t0 = time.perf_counter()
-        old, new = self._corrected_scans(corrections)
-        storage = self._file
-        assert storage is not None  # _corrected_scans refuses a map without a journal
+        transforms = check_corrections(corrections, self.n_scans, self.config.dim)
+        old = self._journaled(list(transforms), "corrections")
+        return self._correct(old, transforms, "corrections", t0)
+
+    @_step_of_state
+    def correct_poses(self, poses: Mapping[int, ArrayLike]) -> ScanUpdate:
+        """Move journaled scans to new absolute sensor poses, as a pose graph optimises them.
+
+        Scan ``i``, inserted from the sensor pose ``T_old`` (:attr:`Scan.pose`: its
+        origin and rotation, as journaled), is moved by ``T_new · T_old⁻¹``
+        (:func:`~octolgp.mapping.correction.pose_corrections`), which takes it to
+        ``T_new``; then as :meth:`correct_scans`, which it equals with those
+        corrections. Scans not named keep their poses.
+
+        Parameters
+        ----------
+        poses : mapping of int to array_like of shape (d+1, d+1)
+            Scan number (from 1, as in ``ScanUpdate.scan``) → the sensor's new pose, a
+            rigid homogeneous sensor-to-world transform (metres), in the frame the
+            scans were inserted in.
+
+        Returns
+        -------
+        ScanUpdate
+            As :meth:`correct_scans`.
+
+        Raises
+        ------
+        OctolgpError
+            As :meth:`correct_scans` (naming ``poses[i]``), and for a scan journaled
+            without its sensor rotation (:attr:`Scan.rotation`: a scan made from
+            points alone, or a map file written before the journal kept rotations);
+            the map is then unchanged.
+        """
+        t0 = time.perf_counter()
+        targets = check_corrections(poses, self.n_scans, self.config.dim, "poses")
+        old = self._journaled(list(targets), "poses")
+        return self._correct(old, pose_corrections(old, targets), "poses", t0)
+
+    def _correct(
+        self, old: dict[int, Scan], transforms: dict[int, FloatArray], name: str, t0: float
+    ) -> ScanUpdate:
+        """Apply checked corrections to the journaled scans ``old``: rebuild, refit, write."""
+        new = self._moved(old, transforms, name)
+        storage = self._journal_source
+        assert storage is not None  # _journaled refuses a map without a journal
         start, extents = self._extents.read(storage, self.n_scans)  # read before any write
-        if self.hyperparameters is None:  # still buffering: only the journal moves
+        learning = self.hyperparameters is None
+        if learning and not len(self.store):  # still buffering, no leaf: only the journal moves
             self._write([], corrected=list(new.items()))
             self._bootstrap.corrected(new)
             self._extents.replace(moved_extents(extents, start, new, self.grid))
@@ -713,10 +803,15 @@ class OnlineMap(MapReads):
         leaves = [gathered[k] for k in keys]
         del gathered
         self.engine.rebuilt(replay.affected)
-        fits = self._fit(leaves, stages)
+        if learning:  # a deferring map's buffered evidence: fitted once it has hyperparameters
+            for leaf in leaves:  # new objects: marked, not copied
+                leaf.pending = True
+            fits, fitted = [], list(zip(keys, leaves, strict=True))
+        else:
+            fits = self._fit(leaves, stages)
+            fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
         # 3. the one write: store, then the file in one transaction, then the sink
         t = time.perf_counter()
-        fitted = [(k, f.leaf) for k, f in zip(keys, fits, strict=True)]
         self._write(
             fitted,
             stamp=self.n_scans,
@@ -724,17 +819,27 @@ class OnlineMap(MapReads):
             corrected=list(new.items()),
             checkpointed=checkpointed,
         )
+        if learning:
+            self._bootstrap.corrected(new)
         self._extents.replace(replay.extents)
         stages["store"] = time.perf_counter() - t
         stages["replayed_scans"] = float(len(replay.scans))
         update = self._update(
-            self.n_scans, t0, stages, len(replay.affected), fits, new_items, len(removed)
+            self.n_scans,
+            t0,
+            stages,
+            len(replay.affected),
+            fits,
+            new_items,
+            len(removed),
+            refit=len(fitted),
+            buffered=learning,
         )
         self.sink.on_update(update, self._change(fitted, tuple(removed)))
         return update
 
     def _replay(
-        self, storage: MapStorage, replay: Replay, stages: dict[str, float]
+        self, storage: ScanJournal, replay: Replay, stages: dict[str, float]
     ) -> tuple[dict[int, Leaf], dict[int, dict[int, Leaf | None]], int]:
         """The affected leaves rebuilt: their state at the journal's start, then its scans.
 
@@ -766,39 +871,48 @@ class OnlineMap(MapReads):
         rebuilt = {k: leaf for k, leaf in state.items() if leaf is not None}
         return rebuilt, checkpointed, items
 
-    def _corrected_scans(
-        self, corrections: Mapping[int, ArrayLike]
-    ) -> tuple[dict[int, Scan], dict[int, Scan]]:
-        """The journaled scans a correction moves, before and after (checked; reads only)."""
-        transforms = check_corrections(corrections, self.n_scans, self.config.dim)
-        start = 0 if self._file is None else self._file.journal_start
-        folded = [i for i in transforms if i <= start]
+    def _journaled(self, numbers: list[int], name: str) -> dict[int, Scan]:
+        """The journaled scans with these (checked) numbers; reads only.
+
+        Raises
+        ------
+        OctolgpError
+            Naming ``name[i]`` for a scan older than the journal, and for a map without
+            one (a map file saved without its journal).
+        """
+        kept = self._journal_source
+        start = 0 if kept is None else kept.journal_start
+        folded = [i for i in numbers if i <= start]
         if folded:
             raise OctolgpError(
-                f"corrections[{folded[0]}]: scan {folded[0]} is older than the journal, which "
+                f"{name}[{folded[0]}]: scan {folded[0]} is older than the journal, which "
                 f"keeps scans {start + 1} to {self.n_scans} (OnlineConfig.journal_scans = "
                 f"{self.config.online.journal_scans}); its evidence is folded into the map"
             )
-        if self._file is None:
+        if kept is None:
             raise OctolgpError(
-                "correct_scans needs the scans' journal: make the map with a path "
-                "(OnlineMap(config, path=...)), which journals every scan"
+                f"{name}: this map keeps no journal of its scans to correct (it was made "
+                "with journal=False)"
             )
-        old = self._file.read_scans(list(transforms))
-        if len(old) != len(transforms):
+        old = kept.read_scans(numbers)
+        if len(old) != len(numbers):
             raise OctolgpError(
-                f"map file {str(self._file.path)!r} holds no journal of its scans (saved from "
-                "memory); only a map made with a path can be corrected"
+                f"map file {str(self.path)!r} holds no journal of its scans (saved by a "
+                "version that kept none for a map in memory); it cannot be corrected"
             )
+        return old
+
+    def _moved(
+        self, old: dict[int, Scan], transforms: dict[int, FloatArray], name: str
+    ) -> dict[int, Scan]:
+        """The scans ``old`` moved by ``transforms``, as the map keeps them (checked)."""
         new = {}
         for i, T in transforms.items():  # a corrected scan must stay inside the map
             try:
                 new[i] = check_scan(transform_scan(old[i], T), self.config, self.grid)
             except OctolgpError as exc:
-                raise OctolgpError(
-                    f"corrections[{i}] moves the scan out of the map: {exc}"
-                ) from None
-        return old, new
+                raise OctolgpError(f"{name}[{i}] moves the scan out of the map: {exc}") from None
+        return new
 
     @_step_of_state
     def insert_batch(
@@ -981,10 +1095,13 @@ class OnlineMap(MapReads):
         removed: list[int] | None = None,
         corrected: list[tuple[int, Scan]] | None = None,
         checkpointed: dict[int, dict[int, Leaf | None]] | None = None,
+        settled: bool = False,
     ) -> None:
         """Write one step's result: the map file in one transaction, then the store.
 
         The file first: when its commit fails nothing has changed, in RAM or on disk.
+        A map without a file records the step in its RAM journal instead, before the
+        store changes (it keeps leaves as they were before the step).
 
         Parameters
         ----------
@@ -1005,6 +1122,8 @@ class OnlineMap(MapReads):
             Journal rows rewritten (a correction).
         checkpointed : dict, optional
             A correction's rebuilt leaves as of each checkpoint after the journal's start.
+        settled : bool, optional
+            ``leaves`` are fits of unchanged evidence (a settle), which no journal records.
         """
         journal, removed, corrected = journal or [], removed or [], corrected or []
         written: list[int] = []
@@ -1017,6 +1136,13 @@ class OnlineMap(MapReads):
             else:
                 count = self.n_scans if n_scans is None else n_scans
                 written = self._file.commit(leaves, journal, self.hyperparameters, count)
+        elif self._ram_journal is not None and not settled:
+            keys = [k for k, _ in leaves]
+            if corrected or removed:
+                self._ram_journal.correct(keys + removed, corrected, checkpointed)
+            else:
+                count = self.n_scans if n_scans is None else n_scans
+                self._ram_journal.record(keys, journal, self.hyperparameters, count)
         try:
             self.store.apply(leaves, touched, stamp)
             self.store.remove(removed)
@@ -1173,7 +1299,7 @@ class OnlineMap(MapReads):
 
 def _provisional_map(config: MapConfig, scans: list[Scan]) -> OnlineMap:
     """A throw-away in-memory map of buffered scans (what :meth:`OnlineMap.flush` would make)."""
-    provisional = OnlineMap(config)
+    provisional = OnlineMap(config, journal=False)  # thrown away: nothing to correct
     if scans:
         provisional.insert_batch(scans)
     return provisional

@@ -18,6 +18,7 @@ import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
+from octolgp.geometry.keys import KEY_BITS
 from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping import coarse
 from octolgp.mapping.field import (
@@ -237,19 +238,20 @@ class MapReads(PlanningReads):
         voxels no leaf predicts stay unknown. ``.ot`` is the full format with each
         voxel's log-odds ``log(P / (1 − P))``. A 2D map is one layer of voxels whose
         z key is 32768 (z in ``[0, resolution)``). Identical sibling voxels are
-        pruned as OctoMap does. Provisional while scans are buffered.
+        pruned as OctoMap does. Provisional while scans are buffered. The map is read a
+        chunk of leaves at a time (:meth:`voxel_chunks`): what is held is a chunk and
+        the file's bytes.
 
         Returns
         -------
         int
             Nodes written (OctoMap's ``size()``).
         """
-        from octolgp.export.octomap import write_map_voxels
+        from octolgp.export.octomap import write_map_voxel_chunks
 
         ok = isinstance(threshold, int | float) and not isinstance(threshold, bool)
         if not ok or not 0.0 < threshold < 1.0:
             raise OctolgpError(f"threshold must be a number in (0, 1), got {threshold!r}")
-        centres, prob = self.voxels()
-        return write_map_voxels(
-            path, centres, prob, self.config.resolution, self.config.tree_depth, threshold
-        )
+        split = KEY_BITS - (self.grid.side.bit_length() - 1)  # a leaf's subtree in the file
+        res, depth = self.config.resolution, self.config.tree_depth
+        return write_map_voxel_chunks(path, self.voxel_chunks(), res, depth, split, threshold)

@@ -209,29 +209,21 @@ class MapHeader:
     checkpoints: list[int] = field(default_factory=lambda: [0])
 
 
-class MapStorage(LeafBacking, Protocol):
-    """What an online map needs of its file (:class:`octolgp.persist.mapfile.MapFile`).
+class ScanJournal(Protocol):
+    """What a pose correction reads of a map's journal: its scans and checkpoints.
 
-    The file records the map's state; it never reads or builds a map object.
+    A map file keeps it (:class:`octolgp.persist.mapfile.MapFile`), a map without one
+    in RAM (:class:`octolgp.persist.memory.MemoryJournal`).
     """
-
-    path: Path
-    header: MapHeader
-    read_only: bool
-    temporary: bool
 
     @property
     def checkpoints(self) -> list[int]:
-        """Scan counts at which the file keeps the leaves changed since, ascending."""
+        """Scan counts at which the journal keeps the leaves changed since, ascending."""
         ...
 
     @property
     def journal_start(self) -> int:
         """The journal holds the scans after this one."""
-        ...
-
-    def transaction(self) -> AbstractContextManager[object]:
-        """One write transaction that the writes inside it join (all or nothing)."""
         ...
 
     def scans(self, start: int = 0) -> Iterator[Scan]:
@@ -243,11 +235,34 @@ class MapStorage(LeafBacking, Protocol):
         ...
 
     def checkpoint_rows(self) -> Iterator[tuple[int, int, bytes | None]]:
-        """Every ``(checkpoint, key, record)`` the file keeps (``None``: no leaf then)."""
+        """Every ``(checkpoint, key, record)`` kept (``None``: no leaf then)."""
         ...
 
     def read_scans(self, indices: list[int]) -> dict[int, Scan]:
         """The journaled scans with these numbers (absent numbers are left out)."""
+        ...
+
+    def checkpoint_leaves(self, checkpoint: int, keys: list[int]) -> dict[int, Leaf | None]:
+        """The leaves ``keys`` as of a checkpoint, where they changed since.
+
+        ``None``: no leaf then; a key left out is unchanged since (the leaf as it is now).
+        """
+        ...
+
+
+class MapStorage(LeafBacking, ScanJournal, Protocol):
+    """What an online map needs of its file (:class:`octolgp.persist.mapfile.MapFile`).
+
+    The file records the map's state; it never reads or builds a map object.
+    """
+
+    path: Path
+    header: MapHeader
+    read_only: bool
+    temporary: bool
+
+    def transaction(self) -> AbstractContextManager[object]:
+        """One write transaction that the writes inside it join (all or nothing)."""
         ...
 
     def commit(
@@ -271,13 +286,6 @@ class MapStorage(LeafBacking, Protocol):
 
         ``checkpointed``: per later checkpoint, the rebuilt evidence of leaves as of it
         (``None``: no leaf then). Returns the leaf keys written.
-        """
-        ...
-
-    def checkpoint_leaves(self, checkpoint: int, keys: list[int]) -> dict[int, Leaf | None]:
-        """The leaves ``keys`` as of a checkpoint, where they changed since.
-
-        ``None``: no leaf then; a key left out is unchanged since (the leaf as it is now).
         """
         ...
 

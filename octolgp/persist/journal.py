@@ -16,6 +16,9 @@ exactly what the map was built from. The blob, before zlib:
   ``w``-byte integers, the bytes of each significance stored together (a byte
   shuffle): sorted beams have close steps, so the differences are small and most of
   their high bytes zero, which zlib packs tightly.
+
+:func:`next_checkpoints` is the retention policy (``OnlineConfig.journal_scans``) that
+a map file and the in-RAM journal of a map without one share.
 """
 
 from __future__ import annotations
@@ -94,3 +97,38 @@ def decode_points(blob: bytes, origin: FloatArray, dim: int) -> FloatArray:
     points = points_from_steps(origin, steps, precision)
     points[kept] = kept_points
     return points
+
+
+def next_checkpoints(
+    checkpoints: list[int], n_scans: int, window: int | None, learning: bool
+) -> list[int]:
+    """The checkpoints after a step: one every ``window`` scans, the older ones dropped.
+
+    The journal keeps the scans after the first checkpoint returned: at least the
+    latest ``window`` scans, at most about twice that. Nothing changes without a window
+    (every scan journaled) or while the map learns (it learns on the journal).
+
+    Parameters
+    ----------
+    checkpoints : list of int
+        Before the step, ascending; the first is the journal's start.
+    n_scans : int
+        The map's scan count after the step.
+    window : int or None
+        ``OnlineConfig.journal_scans``.
+    learning : bool
+        The map has no hyperparameters yet.
+
+    Returns
+    -------
+    list of int
+        Ascending; scans up to the first are dropped from the journal, and the
+        leaves kept as of earlier checkpoints with them.
+    """
+    out = list(checkpoints)
+    if window is None or learning:
+        return out
+    if n_scans - out[-1] >= window:
+        out.append(n_scans)
+    start = max([c for c in out if c <= n_scans - window], default=out[0])
+    return [c for c in out if c >= start]

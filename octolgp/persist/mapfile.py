@@ -12,9 +12,12 @@ Tables
     encoding of :func:`encode_leaf` (a fixed header, the voxel values in float32, the
     engine's evidence record, :meth:`octolgp.engines.base.LeafEngine.encode`, and a
     CRC-32 of all of it).
-``scans(idx INTEGER PRIMARY KEY, dim, origin BLOB, points BLOB, max_range, stamp, crc)``
-    The journal of inserted scans, float64, in insertion order, each with a CRC-32
-    (empty in a file saved from an in-memory map, which keeps no scans).
+``scans(idx INTEGER PRIMARY KEY, dim, origin BLOB, points BLOB, max_range, stamp, crc, codec, rotation)``
+    The journal of inserted scans, in insertion order, each with a CRC-32: the origin
+    in float64, the points in float64 or (``codec`` 1) as the rounded scan's steps
+    (:mod:`octolgp.persist.journal`), and the sensor's rotation (``d x d`` float64,
+    row-major; ``NULL`` for a scan made without one, and in files of version 6 and
+    older, which did not keep it).
 
 Guarantees
 ----------
@@ -65,16 +68,16 @@ from octolgp.errors import MapFileNotFound, OctolgpError
 from octolgp.geometry.keys import pack_keys, unpack_keys
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf, LeafEvidence, MapHeader
-from octolgp.persist.journal import decode_points, encode_points
+from octolgp.persist.journal import decode_points, encode_points, next_checkpoints
 from octolgp.persist.lock import WriterLock, held_by_a_writer
 from octolgp.scan import Scan
 
 FORMAT = "octolgp-map"
-VERSION = 6
-READABLE_VERSIONS = ("2", "3", "4", "5", "6")
+VERSION = 7
+READABLE_VERSIONS = ("2", "3", "4", "5", "6", "7")
 """File versions this code opens (2: before the engines owned their leaf records;
 3: before checksums; 4: before compact records; 5: before every beam was rounded and
-journaled beams were sorted)."""
+journaled beams were sorted; 6: before the journal kept each scan's sensor rotation)."""
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _HEADER = struct.Struct("<4sBBxxqqqq")  # magic, version, dim, values, pruned, refits, touched
 _OLD_HEADER = struct.Struct("<4sBBxxqqqqqq")  # records 1 and 2: h, s, v, pruned, refits, touched
@@ -88,6 +91,9 @@ _PRUNED = 2  # flag: the stored values are one value
 _FOREIGN = 4  # flag: the stored values are not the engine's fit of the evidence
 _COUNT = struct.Struct("<q")  # record 2: halo voxels of the counts; 5: voxel values
 _SCAN_COLUMNS = "idx, dim, origin, points, max_range, stamp"
+_INSERT_SCAN = (
+    f"INSERT INTO scans({_SCAN_COLUMNS}, crc, codec, rotation) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)"
+)
 ENCODE_BATCH = 4096
 """Leaves encoded together when a step writes them (bounded temporaries)."""
 _CHECKPOINT_TABLE = (
@@ -312,11 +318,23 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     return MapConfig.from_dict(stored).resolve()
 
 
-def _scan_crc(dim: int, origin: bytes, points: bytes, max_range: object, stamp: object) -> int:
-    """CRC-32 of a journal row's values (floats by their exact ``repr``)."""
-    return zlib.crc32(
+def _scan_crc(
+    dim: int,
+    origin: bytes,
+    points: bytes,
+    max_range: object,
+    stamp: object,
+    rotation: bytes | None = None,
+) -> int:
+    """CRC-32 of a journal row's values (floats by their exact ``repr``).
+
+    The rotation's bytes count when the row has one, so rows without one keep the
+    checksum older files gave them.
+    """
+    crc = zlib.crc32(
         points, zlib.crc32(origin, zlib.crc32(f"{dim}|{max_range!r}|{stamp!r}".encode()))
     )
+    return crc if rotation is None else zlib.crc32(rotation, crc)
 
 
 def _scan_row(index: int, scan: Scan, precision: float | None) -> tuple[Any, ...]:
@@ -326,13 +344,14 @@ def _scan_row(index: int, scan: Scan, precision: float | None) -> tuple[Any, ...
         points, codec = scan.points.astype("<f8").tobytes(), None
     else:
         points, codec = encode_points(scan, precision), _STEPS
-    crc = _scan_crc(scan.dim, origin, points, scan.max_range, scan.stamp)
-    return (index, scan.dim, origin, points, scan.max_range, scan.stamp, crc, codec)
+    rotation = None if scan.rotation is None else scan.rotation.astype("<f8").tobytes()
+    crc = _scan_crc(scan.dim, origin, points, scan.max_range, scan.stamp, rotation)
+    return (index, scan.dim, origin, points, scan.max_range, scan.stamp, crc, codec, rotation)
 
 
 def _row_scan(row: tuple[Any, ...]) -> Scan:
-    index, dim, origin, points, max_range, stamp, crc, codec = row
-    if crc is not None and _scan_crc(dim, origin, points, max_range, stamp) != crc:
+    index, dim, origin, points, max_range, stamp, crc, codec, rotation = row
+    if crc is not None and _scan_crc(dim, origin, points, max_range, stamp, rotation) != crc:
         raise OctolgpError(f"journaled scan {index} fails its checksum")
     o = np.frombuffer(origin, dtype="<f8").astype(np.float64)
     if codec == _STEPS:
@@ -341,7 +360,8 @@ def _row_scan(row: tuple[Any, ...]) -> Scan:
         p = np.frombuffer(points, dtype="<f8").astype(np.float64).reshape(-1, int(dim))
     else:
         raise OctolgpError(f"journaled scan {index} has an unknown encoding {codec!r}")
-    return Scan(origin=o, points=p, max_range=max_range, stamp=stamp)
+    R = None if rotation is None else np.frombuffer(rotation, "<f8").reshape(int(dim), int(dim))
+    return Scan(o, p, max_range, stamp, R)
 
 
 def _hp_json(hp: Hyperparameters | None) -> str:
@@ -416,7 +436,7 @@ class MapFile:
         self._checkpoints = list(header.checkpoints)
         self._window = header.config.online.journal_scans
         self._wrote = created  # a writer that wrote leaves the file in rollback-journal mode
-        self._crc_column, self._codec_column = _scan_columns(con)
+        self._crc_column, self._codec_column, self._rotation_column = _scan_columns(con)
         self._precision = header.config.online.scan_precision
 
     # ------------------------------------------------------------------ create / open
@@ -451,7 +471,7 @@ class MapFile:
             con.execute(
                 "CREATE TABLE scans(idx INTEGER PRIMARY KEY, dim INTEGER NOT NULL, "
                 "origin BLOB NOT NULL, points BLOB NOT NULL, max_range REAL, stamp REAL, "
-                "crc INTEGER, codec INTEGER)"
+                "crc INTEGER, codec INTEGER, rotation BLOB)"
             )
             con.execute(_CHECKPOINT_TABLE)
             rows = [
@@ -600,7 +620,7 @@ class MapFile:
         """
         with self.transaction() as con:
             con.executemany(
-                f"INSERT INTO scans({_SCAN_COLUMNS}, crc, codec) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                _INSERT_SCAN,
                 (_scan_row(i, s, self._precision) for i, s in journal),
             )
             con.executemany("INSERT INTO checkpoint_leaves VALUES (?, ?, ?)", rows)
@@ -629,7 +649,8 @@ class MapFile:
     @property
     def _scan_select(self) -> str:
         crc = ", crc" if self._crc_column else ", NULL"
-        return _SCAN_COLUMNS + crc + (", codec" if self._codec_column else ", NULL")
+        codec = ", codec" if self._codec_column else ", NULL"
+        return _SCAN_COLUMNS + crc + codec + (", rotation" if self._rotation_column else ", NULL")
 
     # ------------------------------------------------------------------ writes
     @contextmanager
@@ -663,6 +684,9 @@ class MapFile:
             if not self._codec_column:  # a file from before compact journals, too
                 con.execute("ALTER TABLE scans ADD COLUMN codec INTEGER")
                 self._codec_column = True
+            if not self._rotation_column:  # and from before journaled rotations
+                con.execute("ALTER TABLE scans ADD COLUMN rotation BLOB")
+                self._rotation_column = True
             if not self._checkpoint_table:  # and checkpoints
                 con.execute(_CHECKPOINT_TABLE)
                 con.execute("INSERT OR IGNORE INTO meta VALUES ('checkpoints', '[0]')")
@@ -675,7 +699,7 @@ class MapFile:
             if con.in_transaction:
                 with suppress(sqlite3.Error):  # a failed commit may have rolled back already
                     con.execute("ROLLBACK")
-            self._crc_column, self._codec_column = _scan_columns(con)
+            self._crc_column, self._codec_column, self._rotation_column = _scan_columns(con)
             self._checkpoint_table = _has_table(con, "checkpoint_leaves")
             if isinstance(exc, sqlite3.Error):
                 raise self._failed(exc) from None
@@ -704,7 +728,7 @@ class MapFile:
         leaves = list(leaves)
         with self.transaction() as con:
             con.executemany(
-                f"INSERT INTO scans({_SCAN_COLUMNS}, crc, codec) VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                _INSERT_SCAN,
                 (_scan_row(i, s, self._precision) for i, s in journal),
             )
             self._keep_checkpoint(con, [k for k, _ in leaves])
@@ -747,13 +771,10 @@ class MapFile:
         ``journal_scans`` scans back (none while the map learns: it learns on them).
         Returns the checkpoints after the step.
         """
-        window, checkpoints = self._window, list(self._checkpoints)
-        if window is None or hyperparameters is None:
-            return checkpoints
-        if n_scans - checkpoints[-1] >= window:
-            checkpoints.append(n_scans)
-        start = max([c for c in checkpoints if c <= n_scans - window], default=checkpoints[0])
-        checkpoints = [c for c in checkpoints if c >= start]
+        checkpoints = next_checkpoints(
+            self._checkpoints, n_scans, self._window, hyperparameters is None
+        )
+        start = checkpoints[0]
         if start > self._checkpoints[0]:
             con.execute("DELETE FROM scans WHERE idx <= ?", (start,))
             con.execute("DELETE FROM checkpoint_leaves WHERE checkpoint < ?", (start,))
@@ -824,7 +845,7 @@ class MapFile:
                 row = _scan_row(i, s, self._precision)
                 con.execute(
                     "UPDATE scans SET dim=?, origin=?, points=?, max_range=?, stamp=?, crc=?, "
-                    "codec=? WHERE idx=?",
+                    "codec=?, rotation=? WHERE idx=?",
                     (*row[1:], i),
                 )
             con.executemany("DELETE FROM leaves WHERE key=?", ((int(k),) for k in removed))
@@ -873,10 +894,10 @@ def _has_table(con: sqlite3.Connection, name: str) -> bool:
     return row.fetchone() is not None
 
 
-def _scan_columns(con: sqlite3.Connection) -> tuple[bool, bool]:
-    """Whether the journal table has the ``crc`` and the ``codec`` columns."""
+def _scan_columns(con: sqlite3.Connection) -> tuple[bool, bool, bool]:
+    """Whether the journal table has the ``crc``, ``codec`` and ``rotation`` columns."""
     names = {r[1] for r in con.execute("PRAGMA table_info(scans)")}
-    return "crc" in names, "codec" in names
+    return "crc" in names, "codec" in names, "rotation" in names
 
 
 def _read_header(p: Path, con: sqlite3.Connection) -> MapHeader:
@@ -903,7 +924,7 @@ def _read_header(p: Path, con: sqlite3.Connection) -> MapHeader:
         raise OctolgpError(f"map file {str(p)!r} is corrupt: {exc}") from None
     if not checkpoints or checkpoints != sorted(checkpoints) or checkpoints[-1] > n_scans:
         raise OctolgpError(f"map file {str(p)!r} is corrupt: checkpoints {checkpoints}")
-    if journal not in (0, n_scans - checkpoints[0]):  # 0: saved from memory, no journal
+    if journal not in (0, n_scans - checkpoints[0]):  # 0: saved from memory by version 6 or older
         raise OctolgpError(
             f"map file {str(p)!r} is corrupt: {journal} journaled scans, n_scans {n_scans}"
         )

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.scan import FloatArray, Scan, as_points
+from octolgp.scan import FloatArray, Scan, as_points, planar_rotation
 from octolgp.sim.scenes import ray_box_distance
 
 __all__ = ["ROOM_SIZE", "SENSOR_HEIGHT", "LidarRoom", "simulate_lidar_room"]
@@ -172,7 +172,8 @@ class LidarRoom:
         if rng is not None and self.range_noise > 0:
             t = t + rng.normal(0.0, self.range_noise, t.shape)
         r = np.where(hit, np.clip(t, 0.0, self.max_range * (1.0 - 1e-6)), self.max_range)
-        return Scan(p[:3], p[:3] + r[:, None] * dirs, self.max_range, stamp=stamp)
+        rotation = planar_rotation(float(p[3]), 3)  # the sensor turned by its yaw
+        return Scan(p[:3], p[:3] + r[:, None] * dirs, self.max_range, stamp, rotation)
 
     def scan(self, index: int) -> Scan:
         """Training scan ``index`` in ``[0, n_scans)``, with the room's range noise."""

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from octolgp.errors import OctolgpError
-from octolgp.scan import FloatArray, Scan, as_points
+from octolgp.scan import FloatArray, Scan, as_points, planar_rotation
 from octolgp.sim.scenes import ray_box_distance
 
 __all__ = ["Mission3D", "simulate_mission3d"]
@@ -205,7 +205,7 @@ class Mission3D:
             t = t + rng.normal(0.0, self._range_noise, t.shape)
         ranges = np.where(hit, np.clip(t, 0.0, self.max_range - 1e-3), self.max_range)
         points = origin + ranges[:, None] * dirs
-        return Scan(origin, points, self.max_range, stamp=stamp)
+        return Scan(origin, points, self.max_range, stamp, planar_rotation(float(yaw), 3))
 
     def scan(self, index: int) -> Scan:
         """Scan ``index`` in ``[0, n_scans)``, cast from ``route(index * spacing)``; else raise."""

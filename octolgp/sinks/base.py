@@ -77,7 +77,14 @@ class MapChange:
 
 
 class Sink(Protocol):
-    """Receives a map's events (:class:`NullSink`, :class:`octolgp.sinks.rerun.RerunSink`)."""
+    """Receives a map's events (:class:`NullSink`, :class:`octolgp.sinks.rerun.RerunSink`).
+
+    A sink may also have ``on_provisional(update, provisional)``: a map still learning its
+    hyperparameters calls it after each step that only buffered a scan, with
+    ``provisional``, a callable that builds the provisional map of the buffered scans
+    and returns all its leaves as a :class:`MapChange` (a learning and a fit: call it
+    when the drawing is worth that).
+    """
 
     def on_scan(self, scan: Scan, index: int) -> None:
         """An accepted scan, number ``index`` from 1 (before buffering or integration)."""
