@@ -84,6 +84,7 @@ def test_reads_saves_and_exports_never_change_later_inserts(
             m.latent(PROBE, interpolate=False)
             centres, prob = m.voxels()
             m.occupied_voxels()
+            planning_reads(m)
             m.export_octomap(tmp_path / f"m{k}.bt")
             m.save(tmp_path / f"m{k}.octolgp")
             assert (m.hyperparameters, values(m), m.n_scans, m.buffered_scans) == before
@@ -96,6 +97,24 @@ def test_reads_saves_and_exports_never_change_later_inserts(
                 assert centres.shape[0] > 0  # the provisional answer has voxels
                 assert ((prob >= 0) & (prob <= 1)).all()
         assert (m.hyperparameters, values(m)) == reference[k - 1]
+
+
+def planning_reads(m: OnlineMap) -> None:
+    """Every planning query once: ray casts, segments, gradients, distance, coarse and box reads."""
+    directions = np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, -1.0], [1.0, 1.0], [0.0, -1.0]])
+    for unknown in ("stop", "free", "occupied"):
+        m.raycast(PROBE, directions, 4.0, unknown=unknown)
+    m.segment_free(PROBE, PROBE[::-1])
+    m.segment_free(PROBE, PROBE[::-1], unknown_is_free=True)
+    m.gradient(PROBE)
+    m.latent_gradient(PROBE)
+    m.normals(PROBE)
+    m.distance(PROBE)
+    m.distance(PROBE, max_distance=1.0)
+    m.occupancy(PROBE, depth=13)
+    m.voxels(depth=14)
+    m.voxels(bbox=([-1.0, -1.0], [1.0, 1.0]))
+    m.surface()
 
 
 def test_provisional_answer_before_any_training_data_is_the_prior() -> None:

@@ -33,6 +33,7 @@ EXAMPLES = """examples:
   octolgp build data/intel_lab/intel-corrected.log.gz --out intel.octolgp --scheduler local
   octolgp replay intel.rrd --out intel2.octolgp
   octolgp query intel.octolgp --points pts.npy --out prob.npy
+  octolgp query intel.octolgp --raycast rays.npy --max-range 10 --out hits.csv
   octolgp export intel.octolgp --out intel.bt
   octolgp correct intel.octolgp --poses corrections.txt
   octolgp correct intel.octolgp --absolute optimised_poses.txt
@@ -237,26 +238,69 @@ def make_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="one JSON object instead of lines")
     info.set_defaults(func=cmd_info)
 
-    query = sub.add_parser("query", help="P(occupied) at query points of a map file")
+    query = sub.add_parser(
+        "query",
+        help="P(occupied) at points, ray casts or distances to obstacles on a map file",
+        description="One of --points (P(occupied)), --raycast (distance along each ray to "
+        "where P(occupied) first reaches --threshold) or --distance (distance to the nearest "
+        "occupied voxel); the answer goes to --out as .npy or .csv, one value per row.",
+    )
     query.add_argument("map", help="map file written by run")
-    query.add_argument("--points", required=True, help=".npy array of shape (q, d)")
-    query.add_argument("--out", required=True, help=".npy file for the probabilities")
+    what = query.add_mutually_exclusive_group(required=True)
+    what.add_argument("--points", help=".npy array of shape (q, d): P(occupied) there")
+    what.add_argument(
+        "--raycast",
+        metavar="RAYS",
+        help=".npy array of shape (n, 2d): origins then directions; needs --max-range",
+    )
+    what.add_argument(
+        "--distance",
+        metavar="POINTS",
+        help=".npy array of shape (q, d): metres to the nearest occupied voxel",
+    )
+    query.add_argument("--out", required=True, help=".npy or .csv file for the answers")
     query.add_argument(
         "--nearest",
         action="store_true",
-        help="the value of the voxel holding each point (default: interpolated, continuous)",
+        help="--points: the value of the voxel holding each point (default: interpolated)",
+    )
+    query.add_argument(
+        "--max-range", type=float, help="--raycast: metres along each ray (required there)"
+    )
+    query.add_argument(
+        "--threshold",
+        type=_probability,
+        help="--raycast, --distance: P(occupied) that counts as an obstacle (default 0.5)",
+    )
+    query.add_argument(
+        "--unknown",
+        choices=("stop", "free", "occupied"),
+        help="--raycast: a ray entering unknown space ends with NaN (stop, default), "
+        "passes (free) or hits there (occupied)",
+    )
+    query.add_argument(
+        "--max-distance",
+        type=float,
+        help="--distance: farther answers are inf, and only voxels this near the points are read",
     )
     query.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     query.set_defaults(func=cmd_query)
 
     export = sub.add_parser(
-        "export", help="export a map file to OctoMap, PLY, PCD, PNG or a nav2 map (PGM + YAML)"
+        "export",
+        help="export a map file to OctoMap, PLY, PCD, PNG, a nav2 map (PGM + YAML) or a mesh (OBJ)",
     )
     export.add_argument("map", help="map file written by run or replay")
     export.add_argument(
         "--out",
         required=True,
-        help="FILE.bt | FILE.ot | FILE.ply | FILE.pcd | FILE.png | FILE.pgm (nav2: with FILE.yaml)",
+        help="FILE.bt | FILE.ot | FILE.ply | FILE.pcd | FILE.png | FILE.pgm (nav2: with FILE.yaml)"
+        " | FILE.obj (the P = --threshold level set as a mesh)",
+    )
+    export.add_argument(
+        "--mesh",
+        action="store_true",
+        help="FILE.ply: the level set as a mesh (3D triangles, 2D segments), not voxel centres",
     )
     export.add_argument(
         "--threshold", type=_probability, default=0.5, help="occupied above this P, in (0, 1)"

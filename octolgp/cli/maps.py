@@ -80,27 +80,96 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_query(args: argparse.Namespace) -> int:
-    """``octolgp query``: P(occupied) of a map file at the points of a ``.npy``, into a ``.npy``."""
+def _load_array(flag: str, path: str) -> np.ndarray:
+    """The ``.npy`` array given as ``--flag PATH``, or :class:`OctolgpError` naming the flag."""
+    import numpy as np
+
+    p = Path(path)
+    if not p.is_file():
+        raise OctolgpError(f"{flag} {str(p)!r} does not exist")
+    try:
+        return np.asarray(np.load(p, allow_pickle=False))
+    except (ValueError, OSError) as exc:
+        raise OctolgpError(f"{flag} {str(p)!r} is not a .npy array: {exc}") from None
+
+
+def _write_answers(out: Path, values: np.ndarray, column: str) -> None:
+    """``values`` (q,) to ``out``: ``.npy``, or ``.csv`` with a header line ``column``."""
     import numpy as np
 
     from octolgp.export.common import replacing
+
+    with replacing(out) as tmp, open(tmp, "wb") as fh:  # never half a file at --out
+        if out.suffix == ".csv":
+            np.savetxt(fh, values, fmt="%.9g", header=column, comments="")
+        else:
+            np.save(fh, values)
+
+
+def cmd_query(args: argparse.Namespace) -> int:
+    """``octolgp query``: P(occupied), ray casts or distances on a map file, into .npy/.csv."""
     from octolgp.mapping.online import OnlineMap
 
-    pts_path = Path(args.points)
-    if not pts_path.is_file():
-        raise OctolgpError(f"--points {str(pts_path)!r} does not exist")
-    try:
-        pts = np.load(pts_path, allow_pickle=False)
-    except (ValueError, OSError) as exc:
-        raise OctolgpError(f"--points {str(pts_path)!r} is not a .npy array: {exc}") from None
     out = Path(args.out)
+    if out.suffix not in (".npy", ".csv"):
+        raise OctolgpError(f"--out must end in .npy or .csv, got {str(out)!r}")
+    if args.raycast is None and args.max_range is not None:
+        raise OctolgpError("--max-range applies to --raycast only")
+    if args.distance is None and args.max_distance is not None:
+        raise OctolgpError("--max-distance applies to --distance only")
+    if args.raycast is not None and args.max_range is None:
+        raise OctolgpError("--raycast needs --max-range (metres along each ray)")
+    if args.points is None and args.nearest:
+        raise OctolgpError("--nearest applies to --points only")
+    if args.raycast is None and args.unknown is not None:
+        raise OctolgpError("--unknown applies to --raycast only")
+    if args.points is not None and args.threshold is not None:
+        raise OctolgpError("--threshold applies to --raycast and --distance only")
+    threshold = 0.5 if args.threshold is None else args.threshold
+    flag, path = next(
+        (f, p)
+        for f, p in (
+            ("--points", args.points),
+            ("--raycast", args.raycast),
+            ("--distance", args.distance),
+        )
+        if p is not None
+    )
+    data = _load_array(flag, path)
     check_outputs(args.overwrite, out)
     with OnlineMap.open(args.map, read_only=True) as m:
-        prob = m.occupancy(pts, interpolate=not args.nearest)
-    with replacing(out) as tmp, open(tmp, "wb") as fh:  # never half a file at --out
-        np.save(fh, prob)
-    print(f"wrote {out}: P(occupied) at {prob.size} points")
+        if args.points is not None:
+            values, column, what = (
+                m.occupancy(data, interpolate=not args.nearest),
+                "p_occupied",
+                "P(occupied)",
+            )
+        elif args.raycast is not None:
+            d = m.config.dim
+            if data.ndim != 2 or data.shape[1] != 2 * d:
+                raise OctolgpError(
+                    f"--raycast must be an array of shape (n, {2 * d}) (origins then "
+                    f"directions), got {data.shape}"
+                )
+            try:
+                values = m.raycast(
+                    data[:, :d],
+                    data[:, d:],
+                    args.max_range,
+                    threshold,
+                    unknown=args.unknown or "stop",
+                )
+            except OctolgpError as exc:
+                raise OctolgpError(f"--raycast: {exc}") from None
+            column, what = "distance", "ray cast distances"
+        else:
+            try:
+                values = m.distance(data, threshold, max_distance=args.max_distance)
+            except OctolgpError as exc:
+                raise OctolgpError(f"--distance: {exc}") from None
+            column, what = "distance", "distances to the nearest occupied voxel"
+    _write_answers(out, values, column)
+    print(f"wrote {out}: {what} at {values.size} {'rays' if args.raycast else 'points'}")
     return 0
 
 
@@ -112,9 +181,21 @@ def cmd_export(args: argparse.Namespace) -> int:
     from octolgp.mapping.online import OnlineMap
 
     out = Path(args.out)
-    kinds = (".bt", ".ot", ".ply", ".pcd", ".png", ".pgm")
+    kinds = (".bt", ".ot", ".ply", ".pcd", ".png", ".pgm", ".obj")
     if out.suffix not in kinds:
         raise OctolgpError(f"--out must end in one of {', '.join(kinds)}, got {str(out)!r}")
+    if args.mesh and out.suffix not in (".ply", ".obj"):
+        raise OctolgpError("--mesh applies to --out FILE.ply or FILE.obj only")
+    if args.mesh or out.suffix == ".obj":
+        from octolgp.export.mesh import write_mesh
+
+        check_outputs(args.overwrite, out)
+        with OnlineMap.open(args.map, read_only=True) as m:
+            vertices, faces = m.surface(args.threshold)
+        write_mesh(out, vertices, faces)
+        kind = "triangles" if vertices.shape[1] == 3 else "segments"
+        print(f"wrote {out}: {vertices.shape[0]} vertices, {faces.shape[0]} {kind}")
+        return 0
     z_range = args.z_range
     if z_range is not None and out.suffix != ".pgm":
         raise OctolgpError("--z-range applies to a nav2 map (--out FILE.pgm) only")

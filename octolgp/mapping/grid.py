@@ -108,6 +108,14 @@ class LeafGrid:
         keys = np.floor((points - self._origin) / (self.resolution * scale)).astype(np.int64)
         return pack_keys(np.clip(keys, 0, (1 << self.tree_depth) - 1))
 
+    def voxel_index_keys(self, points: FloatArray) -> IntArray:
+        """Per-axis voxel keys ``(n, d)`` of addressable points (OctoMap's ``coordToKey``)."""
+        return np.floor((points - self._origin) / self.resolution).astype(np.int64)
+
+    def key_centres(self, keys: IntArray) -> FloatArray:
+        """Centres ``(n, d)`` of the voxels with per-axis keys ``(n, d)``, metres."""
+        return np.asarray(self._origin + (keys + 0.5) * self.resolution)
+
     def box(self, index: IntArray) -> tuple[FloatArray, FloatArray]:
         """Core boxes ``lo, hi`` of leaves with indices (k, d), metres."""
         lo = self._origin + np.asarray(index, dtype=np.float64) * self.edge

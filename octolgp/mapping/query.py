@@ -10,154 +10,44 @@ resident, so a query does not change which leaves stay in RAM either.
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import Protocol
 
 import numpy as np
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import KEY_BITS, addressable_mask, addressable_range
+from octolgp.geometry.keys import KEY_BITS
 from octolgp.gp.plsc import latent_occupancy
-from octolgp.mapping.grid import LeafGrid, group_keys
+from octolgp.mapping import coarse
+from octolgp.mapping.field import (
+    QUERY_CHUNK,
+    ReadableMap,
+    interpolate,
+    interpolate_latent,
+    leaves_read,
+    lookup,
+    query_points,
+)
+from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.planning_reads import PlanningReads
 from octolgp.mapping.store import Leaf, LeafStore
-from octolgp.scan import FloatArray, as_points
+from octolgp.scan import FloatArray
+
+__all__ = [
+    "QUERY_CHUNK",
+    "MapReads",
+    "ReadableMap",
+    "interpolate",
+    "interpolate_latent",
+    "leaves_read",
+    "lookup",
+    "query_points",
+]
 
 
-def query_points(points: object, config: MapConfig) -> FloatArray:
-    """Validate query points: shape ``(q, d)``, finite, inside the addressable range.
-
-    Raises
-    ------
-    OctolgpError
-        Naming the first offending row.
-    """
-    X = as_points(points, "points", dim=config.dim)
-    inside = addressable_mask(X, config.resolution, config.tree_depth)
-    if not inside.all():
-        low, high = addressable_range(config.resolution, config.tree_depth)
-        row = int(np.flatnonzero(~inside)[0])
-        raise OctolgpError(
-            f"points row {row} ({X[row].tolist()}) is outside the addressable range "
-            f"[{low:g}, {high:g}) m"
-        )
-    return X
-
-
-QUERY_CHUNK = 1 << 16
-"""Points a query (:class:`MapReads`) handles at once: its temporaries (the ``2**d``
-corners of each point, their values, the probabilities) stay a few tens of megabytes
-whatever the query's size."""
-
-
-def lookup(
-    store: LeafStore, grid: LeafGrid, X: FloatArray, fields: tuple[str, ...]
-) -> list[FloatArray]:
-    """Stored voxel values (``fields`` of :class:`~octolgp.mapping.store.Leaf`) at points.
-
-    Parameters
-    ----------
-    store : LeafStore
-    grid : LeafGrid
-    X : ndarray of shape (q, d)
-        Validated points, metres, world frame.
-    fields : tuple of str
-        Among ``"mean"``, ``"var"``, ``"prob"``.
-
-    Returns
-    -------
-    list of ndarray of shape (q,)
-        One per field; NaN where no leaf holds a value for the point.
-    """
-    out = [np.full(X.shape[0], np.nan) for _ in fields]
-    if X.shape[0] == 0 or len(store) == 0:
-        return out
-    order, keys, bounds = group_keys(grid.pack(grid.leaf_of(X)))
-    key_list, size = keys.tolist(), store.batch
-    batch: list[Leaf | None] = []
-    for j in range(len(key_list)):  # one iteration per leaf queried
-        if j % size == 0:  # evicted leaves read and fitted a batch at a time
-            batch = store.peek_many(key_list[j : j + size])
-        leaf = batch[j % size]
-        if leaf is None or leaf.prob.size == 0:
-            continue
-        sel = order[bounds[j] : bounds[j + 1]]
-        flat = np.zeros(sel.size, dtype=np.int64)
-        if not leaf.pruned:
-            flat = grid.voxel_index(X[sel], leaf.index)
-        for arr, name in zip(out, fields, strict=True):
-            arr[sel] = getattr(leaf, name)[flat]
-    return out
-
-
-def interpolate(
-    store: LeafStore, grid: LeafGrid, config: MapConfig, prior: float, X: FloatArray
-) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """Multilinear interpolation of the voxel latent mean and variance at points.
-
-    The ``2**d`` voxel centres around each point are weighted by the usual
-    bilinear/trilinear weights; a corner no leaf holds (or outside the addressable
-    range) contributes the GP prior ``(0, prior)``.
-
-    Returns
-    -------
-    mean, var : ndarray of shape (q,)
-    known : ndarray of bool, shape (q,)
-        Points whose own voxel holds a value.
-    """
-    d = config.dim
-    res = config.resolution
-    (own,) = lookup(store, grid, X, ("mean",))
-    u = X / res - 0.5
-    base = np.floor(u)
-    frac = u - base
-    corners = np.array(list(np.ndindex(*(2,) * d)), dtype=np.float64)  # (2^d, d)
-    weights = np.prod(np.where(corners[:, None, :] == 1, frac, 1.0 - frac), axis=2)
-    centres = ((base[None, :, :] + corners[:, None, :] + 0.5) * res).reshape(-1, d)
-    inside = addressable_mask(centres, res, config.tree_depth)
-    mean = np.full(centres.shape[0], np.nan)
-    var = np.full(centres.shape[0], np.nan)
-    mean[inside], var[inside] = lookup(store, grid, centres[inside], ("mean", "var"))
-    known = ~np.isnan(mean)
-    mean = np.where(known, mean, 0.0).reshape(weights.shape)
-    var = np.where(known, var, prior).reshape(weights.shape)
-    return (weights * mean).sum(axis=0), (weights * var).sum(axis=0), ~np.isnan(own)
-
-
-class ReadableMap(Protocol):
-    """What a read needs of a map: its config, leaf grid, store and hyperparameters."""
-
-    config: MapConfig
-    grid: LeafGrid
-    store: LeafStore
-    hyperparameters: Hyperparameters | None
-
-
-def leaves_read(grid: LeafGrid, X: FloatArray) -> set[int]:
-    """Packed keys of every leaf a query at ``X`` may read (interpolated or not).
-
-    The ``2**d`` voxel centres around a point lie within one voxel of it, so their
-    leaves are those of the points moved by up to a voxel along each axis.
-    """
-    res = grid.resolution
-    low, high = grid.leaf_of(X - res), grid.leaf_of(X + res)
-    keys: set[int] = set()
-    for corner in itertools.product((0, 1), repeat=X.shape[1]):  # 4 or 8 corners
-        index = np.where(np.array(corner, dtype=bool), high, low)
-        keys.update(np.unique(grid.pack(index)).tolist())
-    return keys
-
-
-def interpolate_latent(m: ReadableMap, X: FloatArray) -> tuple[FloatArray, FloatArray, np.ndarray]:
-    """Multilinear latent mean and variance of map ``m`` at points (see :func:`interpolate`)."""
-    prior = 1.0 if m.hyperparameters is None else m.hyperparameters.signal_variance
-    return interpolate(m.store, m.grid, m.config, prior, X)
-
-
-class MapReads:
+class MapReads(PlanningReads):
     """The reads of an online map; none of them changes the map.
 
     A subclass provides ``config`` and :meth:`_reading`, a context holding the map the
@@ -174,7 +64,9 @@ class MapReads:
         """The map one read comes from; ``points``: the read is a query at these points."""
         raise NotImplementedError
 
-    def occupancy(self, points: object, *, interpolate: bool = True) -> FloatArray:
+    def occupancy(
+        self, points: object, *, interpolate: bool = True, depth: int | None = None
+    ) -> FloatArray:
         """P(occupied) at query points.
 
         Parameters
@@ -188,6 +80,11 @@ class MapReads:
             into a probability; at a voxel centre this is the voxel's own value.
             ``False``: the stored value of the voxel holding the point (OctoMap's
             semantics, piecewise constant).
+        depth : int, optional
+            Octree depth in ``1..tree_depth`` (default: ``tree_depth``, the voxels).
+            Coarser, each point reads the node at that depth holding it, as
+            OctoMap's ``search(point, depth)``: the max P of the voxels inside the
+            node that hold a value (0.5 if none); ``interpolate`` is then unused.
 
         Returns
         -------
@@ -202,6 +99,10 @@ class MapReads:
             On a bad shape, a non-finite value or a point outside the addressable range.
         """
         X = query_points(points, self.config)
+        level = coarse.check_depth(depth, self.config)
+        if level < self.config.tree_depth:
+            with self._reading() as m:
+                return coarse.depth_occupancy(m, X, level)
         out = np.empty(X.shape[0])
         with self._reading(X) as m:
             hp = m.hyperparameters
@@ -260,18 +161,37 @@ class MapReads:
         with self._reading():
             return self.store.items() if self.hyperparameters is not None else iter(())
 
-    def voxels(self) -> tuple[FloatArray, FloatArray]:
+    def voxels(
+        self, *, depth: int | None = None, bbox: tuple[object, object] | None = None
+    ) -> tuple[FloatArray, FloatArray]:
         """Centres and P(occupied) of every predicted voxel (pruned leaves expanded).
 
         Voxels a leaf holds no value for (too far from any observation:
         ``LatticeConfig.fill_voxels``) are left out, as space outside every leaf is.
         Provisional while scans are buffered (see :attr:`provisional`).
 
+        Parameters
+        ----------
+        depth : int, optional
+            Octree depth in ``1..tree_depth`` (default ``tree_depth``: voxels).
+            Coarser, the nodes at that depth holding a voxel with a value, each with
+            the max P of its voxels (OctoMap's inner-node occupancy).
+        bbox : (lo, hi), optional
+            Box corners, each of shape (d,), metres, world frame, ``lo <= hi``: only
+            the cells (at ``depth``) that overlap the box, as OctoMap's
+            ``begin_leafs_bbx``, reading only the leaves that overlap it.
+
         Returns
         -------
         centres : ndarray of shape (k, d)
+            Cell centres (OctoMap's ``keyToCoord`` at ``depth``).
         prob : ndarray of shape (k,)
         """
+        if depth is not None or bbox is not None:
+            level = coarse.check_depth(depth, self.config)
+            lo, hi = coarse.check_bbox(bbox, self.config)
+            with self._reading() as m:
+                return coarse.box_voxels(m, lo, hi, level)
         chunks = list(self.voxel_chunks())
         if not chunks:
             return np.zeros((0, self.config.dim)), np.zeros(0)
