@@ -281,7 +281,6 @@ def write_tree_chunks(
     roots: list[Level] = []
     spans: list[IntArray] = []  # per root: its subtree's nodes and bytes
     streams: list[bytes] = []
-    base = 0  # bytes streamed so far
     for keys, values in chunks:  # one chunk of voxels per iteration
         keys16 = to_keys16(keys, tree_depth)
         if full:
@@ -306,9 +305,9 @@ def write_tree_chunks(
             node_bytes = np.where(inner, record, 0)
         starts = np.flatnonzero(depth == split)  # each subtree begins with its root
         n_bytes = np.add.reduceat(node_bytes, starts)
-        offset = base + np.cumsum(n_bytes) - n_bytes
-        spans.append(np.column_stack([np.diff(np.r_[starts, order.size]), n_bytes, offset]))
-        base += len(streams[-1])
+        offset = np.cumsum(n_bytes) - n_bytes  # in this chunk's stream
+        chunk = np.full(starts.size, len(streams) - 1)
+        spans.append(np.column_stack([np.diff(np.r_[starts, order.size]), n_bytes, offset, chunk]))
         roots.append(levels[0])
     header = OT_HEADER if full else BT_HEADER
     if not roots:
@@ -319,7 +318,7 @@ def write_tree_chunks(
     code = code[by_code]
     if code.size > 1 and np.any(code[1:] == code[:-1]):
         raise OctolgpError(f"chunks must hold whole subtrees of depth {split}, got one split")
-    span = np.concatenate(spans)[by_code]  # per root: nodes, bytes, offset in the streams
+    span = np.concatenate(spans)[by_code]  # per root: nodes, bytes, offset, its chunk
     top = grow_tree(
         Level(code, *(np.concatenate([getattr(r, f) for r in roots])[by_code] for f in _FIELDS)),
         split,
@@ -342,14 +341,14 @@ def write_tree_chunks(
             int(state).to_bytes(2, "little") if inner else b""
             for state, inner in zip(above[3][at].tolist(), above[1][at].tolist(), strict=True)
         ]
-    data = memoryview(b"".join(streams))
+    views = [memoryview(stream) for stream in streams]  # pieces of them, never copied
     pieces: list[bytes | memoryview] = [_header(header, size, resolution)]
     upper = iter(records)
     for d, r in zip(depth.tolist(), row, strict=True):  # one per node at or above the split
         if d < split:
             pieces.append(next(upper))
         else:
-            pieces.append(data[kept[r, 2] : kept[r, 2] + kept[r, 1]])
+            pieces.append(views[kept[r, 3]][kept[r, 2] : kept[r, 2] + kept[r, 1]])
     write_bytes(path, pieces)
     return size
 
