@@ -20,7 +20,8 @@ it. Then the mission's map is built scan by scan and the peak RSS since the base
 The target: peak <= base + 1.5 x budget. The table gives the RSS right after the
 learning step, at the end, and whether it is flat over the second half (the largest
 rise of the RSS read every 50 scans over the second half), the leaves resident in RAM,
-the map file's (or spill file's) bytes per scan, and the seconds; ``--plot PNG`` draws
+the map file's (or spill file's) bytes per scan and per observed voxel (a voxel some
+scan saw, counted once in its own leaf), and the seconds; ``--plot PNG`` draws
 the per-scan insert time over the mission.
 
     .venv/bin/python tools/bench_budget_rss.py --scans 1500 --scans3d 2000 --budgets 64,none
@@ -88,9 +89,12 @@ def child(kind: str, scans: int, budget: str) -> None:
     half = [r for i, r in samples if i >= scans // 2]
     rise = max(half) - half[0] if half else float("nan")
     path = m.path  # the spill file of a budget
-    file_bytes = 0
+    file_bytes, observed = 0, 0
     if path is not None:
         file_bytes = sum(os.path.getsize(p) for p in (path, f"{path}-wal") if os.path.exists(p))
+        from bench_file_size import observed_voxels  # this folder: a tool beside it
+
+        observed = observed_voxels(Path(path))
     leaves_mb = m.memory_bytes() / 1e6
     m.close()
     print(
@@ -103,6 +107,7 @@ def child(kind: str, scans: int, budget: str) -> None:
                 "rise": rise,
                 "leaves_mb": leaves_mb,
                 "file_per_scan_kb": file_bytes / scans / 1e3,
+                "file_per_voxel": file_bytes / observed if observed else float("nan"),
                 "seconds": seconds,
                 "times": times,
             }
@@ -141,9 +146,9 @@ def main() -> int:
     print(
         "| mission | scans | budget MB | base RSS MB (import + warm-up) | peak RSS MB | "
         "peak - base | target (1.5 x budget) | RSS after learning MB | end RSS MB | rise over "
-        "the second half MB | resident leaves MB | file kB / scan | s |"
+        "the second half MB | resident leaves MB | file kB / scan | file B / observed voxel | s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     series = {}
     for kind, n in runs:
         for budget in args.budgets.split(","):
@@ -160,7 +165,7 @@ def main() -> int:
                 f"| {kind} | {n} | {budget} | {r['base']:.0f} | {r['peak']:.0f} | "
                 f"{r['peak'] - r['base']:.0f} | {target} | {r['learnt']:.0f} | {r['end']:.0f} | "
                 f"{r['rise']:.0f} | {r['leaves_mb']:.1f} | {r['file_per_scan_kb']:.1f} | "
-                f"{r['seconds']:.0f} |",
+                f"{r['file_per_voxel']:.1f} | {r['seconds']:.0f} |",
                 flush=True,
             )
     if args.plot is not None and series:
