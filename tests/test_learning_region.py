@@ -12,18 +12,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-import octolgp.gp.learning as learning_module
 from octolgp import MapConfig, OctolgpError, Scan
 from octolgp.config import LearningConfig
 from octolgp.geometry import ray_kernel
 from octolgp.geometry.keys import KeyRegion, coord_to_key, key_to_coord, pack_keys
-from octolgp.gp.learning import (
-    learning_voxel_sets,
-    return_voxels,
-    sets_around,
-    spread_seeds,
-    voxel_observations,
-)
+from octolgp.gp.learning import learning_voxel_sets, voxel_learning_sets, voxel_observations
 from octolgp.mapping.online import OnlineMap
 from octolgp.observations import VoxelObservations, observe
 
@@ -107,35 +100,20 @@ def _assert_same_sets(a: list, b: list) -> None:
         np.testing.assert_array_equal(x.noise_scale, y.noise_scale)
 
 
-def _seeds(scans: list[Scan], config: MapConfig) -> np.ndarray:
-    return spread_seeds(return_voxels(scans, config), config.learning.max_clusters)
-
-
 @pytest.mark.parametrize("dim", [2, 3])
-def test_return_voxels_are_the_occupied_voxels_of_a_static_world(dim: int) -> None:
-    config = _resolved(dim)
-    scans = _scans(dim, 2, 300, seed=dim)
-    points, y, _ = voxel_observations(scans, config)
-    res, depth = config.resolution, config.tree_depth
-    occupied = np.unique(pack_keys(coord_to_key(points[y > 0], res, depth)))
-    centres = return_voxels(scans, config)
-    np.testing.assert_array_equal(pack_keys(coord_to_key(centres, res, depth)), occupied)
-    np.testing.assert_allclose(centres, key_to_coord(coord_to_key(centres, res, depth), res, depth))
-
-
-@pytest.mark.parametrize("dim", [2, 3])
-def test_learning_sets_from_a_region_are_those_of_every_voxel(dim: int) -> None:
+def test_learning_sets_from_regions_are_those_of_every_voxel(dim: int) -> None:
     config = _resolved(dim)
     scans = _scans(dim, 4, 400, seed=10 + dim)
     points, y, weights = voxel_observations(scans, config)
-    expected, _ = sets_around(points, y, weights, _seeds(scans, config), config)
-    _assert_same_sets(learning_voxel_sets(scans, config), expected)
+    _assert_same_sets(
+        learning_voxel_sets(scans, config), voxel_learning_sets(points, y, weights, config)
+    )
 
 
-def test_a_region_grows_where_forgotten_returns_leave_a_set_short(
-    monkeypatch: pytest.MonkeyPatch,
-) -> None:
-    """A wall seen once, then seen through scan after scan: its returns are forgotten."""
+def test_learning_sets_from_regions_where_returns_were_forgotten() -> None:
+    """A wall seen once, then seen through scan after scan: its returns are forgotten,
+    so they seed no set and sit in no set (the occupied voxels come from the region of
+    the returns' blocks, as from every voxel)."""
     small = LearningConfig(max_clusters=8, max_items_per_cluster=20)  # 10 returns a set
     config = dataclasses.replace(_resolved(2), learning=small)
     angles = np.linspace(-0.6, 0.6, 200)
@@ -144,19 +122,11 @@ def test_a_region_grows_where_forgotten_returns_leave_a_set_short(
     wall = Scan(origin, u * (2.0 / u[:, :1]))  # a wall at x = 2
     through = Scan(origin, u * (6.0 / u[:, :1]))  # later: gone, a wall at x = 6
     scans = [wall] + [through] * (config.clear_scans + 2)
-    calls: list[object] = []
-    whole = learning_module.voxel_observations
-
-    def counted(*args: object) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        calls.append(args[2] if len(args) > 2 else None)
-        return whole(*args)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(learning_module, "voxel_observations", counted)
-    points, y, weights = whole(scans, config)
+    points, y, weights = voxel_observations(scans, config)
     assert not np.any((y > 0) & (points[:, 0] < 3.0))  # the first wall is forgotten
-    expected, _ = sets_around(points, y, weights, _seeds(scans, config), config)
-    _assert_same_sets(learning_voxel_sets(scans, config), expected)
-    assert len(calls) > 1  # the region grew at least once
+    sets = learning_voxel_sets(scans, config)
+    _assert_same_sets(sets, voxel_learning_sets(points, y, weights, config))
+    assert all(np.all(part.items.nodes[part.y > 0, 0] > 3.0) for part in sets)
 
 
 def test_learning_in_a_region_refuses_scans_without_data_or_returns() -> None:
@@ -166,3 +136,14 @@ def test_learning_in_a_region_refuses_scans_without_data_or_returns() -> None:
     blind = Scan(np.zeros(2), np.array([[5.0, 0.0], [0.0, 5.0]]), max_range=5.0)
     with pytest.raises(OctolgpError, match="no return"):
         learning_voxel_sets([blind], config)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_a_region_holding_keys_holds_exactly_their_blocks(dim: int) -> None:
+    rng = np.random.default_rng(dim)
+    keys = rng.integers(30000, 30100, (50, dim))
+    region = KeyRegion.holding(np.unique(pack_keys(keys)), dim, shift=2)
+    probe = rng.integers(29990, 30110, (20000, dim))
+    blocks = {tuple(k) for k in (keys >> 2).tolist()}
+    expected = np.array([tuple(k) in blocks for k in (probe >> 2).tolist()])
+    np.testing.assert_array_equal(region.contains(pack_keys(probe)), expected)

@@ -386,6 +386,17 @@ class KeyRegion:
             blocks.reshape(-1)[inside] = True
         return cls(shift, low, blocks)
 
+    @classmethod
+    def holding(cls, packed: IntArray, dim: int, shift: int = 3) -> KeyRegion:
+        """The blocks that hold the voxels of packed keys ``(n,)`` of ``dim`` axes."""
+        keys = (packed[:, None] >> (KEY_BITS * np.arange(dim))) & _KEY_MASK
+        block = keys >> shift
+        low = block.min(axis=0) if packed.size else np.zeros(dim, np.int64)
+        extent = block.max(axis=0) - low + 1 if packed.size else np.zeros(dim, np.int64)
+        blocks = np.zeros(tuple(int(e) for e in extent), dtype=bool)
+        blocks[tuple((block - low).T)] = True
+        return cls(shift, low, blocks)
+
     def contains(self, packed: IntArray) -> NDArray[np.bool_]:
         """Whether each packed key's voxel lies in the region.
 

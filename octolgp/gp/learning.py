@@ -35,7 +35,12 @@ from threadpoolctl import threadpool_limits
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.errors import OctolgpError
-from octolgp.geometry.keys import KeyRegion, coord_to_key, key_to_coord, pack_keys, unpack_keys
+from octolgp.geometry.keys import (
+    KeyRegion,
+    coord_to_key,
+    key_to_coord,
+    pack_keys,
+)
 from octolgp.gp.kernels import BlockWorkspace
 from octolgp.gp.likelihood import log_marginal_likelihood, loo_log_predictive, loo_predictions
 from octolgp.gp.plsc import fit_plsc
@@ -51,9 +56,6 @@ from octolgp.training import (
     make_training_data,
     stack_beams,
 )
-
-REGION_TRIES = 4
-"""Times the learning region is grown before the scans are observed whole."""
 
 MIN_NOISE_VARIANCE = 1e-2
 """Lower bound of the learnt noise variance ``σn²`` (targets are ±1): on real logs the
@@ -328,7 +330,7 @@ def voxel_learning_sets(
     """Up to ``learning.max_clusters`` sets of voxel observations spread over the map.
 
     Seeds are occupied voxels evenly spaced in their order along the axis of largest
-    extent (:func:`spread_seeds`); each set is :func:`sets_around` its seed.
+    extent (:func:`spread_seeds`); each set is :func:`voxel_sets`' around its seed.
 
     Parameters
     ----------
@@ -342,7 +344,7 @@ def voxel_learning_sets(
         Point items, noise scales ``1 / w``.
     """
     seeds = spread_seeds(points[y > 0], config.learning.max_clusters)
-    return sets_around(points, y, weights, seeds, config)[0]
+    return voxel_sets(points, y, weights, seeds, config)
 
 
 def spread_seeds(hit_points: FloatArray, count: int) -> FloatArray:
@@ -367,9 +369,9 @@ def spread_seeds(hit_points: FloatArray, count: int) -> FloatArray:
     return seeds
 
 
-def sets_around(
+def voxel_sets(
     points: FloatArray, y: FloatArray, weights: FloatArray, seeds: FloatArray, config: MapConfig
-) -> tuple[list[LearningSet], FloatArray]:
+) -> list[LearningSet]:
     """One learning set per seed: its nearest occupied voxels and the free ones around.
 
     A set holds the ``max_items_per_cluster // 2`` occupied voxels nearest its seed and
@@ -386,10 +388,8 @@ def sets_around(
 
     Returns
     -------
-    sets : list of LearningSet
+    list of LearningSet
         Point items, noise scales ``1 / w``.
-    radius : ndarray of shape (k,)
-        Each set's radius, metres: the distance of its farthest occupied voxel.
     """
     lc = config.learning
     rng = np.random.default_rng(lc.seed)
@@ -397,44 +397,27 @@ def sets_around(
     hit_points, free_points = points[occupied], points[free]
     cap = lc.max_items_per_cluster
     n_near = min(cap // 2, occupied.size)
-    sets, radius = [], np.zeros(seeds.shape[0])
-    for i, seed in enumerate(seeds):  # one iteration per set, a few
+    sets = []
+    for seed in seeds:  # one iteration per set, a few
         d2 = np.sum((hit_points - seed) ** 2, axis=1)
         near = np.argsort(d2, kind="stable")[:n_near]
-        radius[i] = np.sqrt(d2[near[-1]])
         inside = np.flatnonzero(np.sum((free_points - seed) ** 2, axis=1) <= d2[near[-1]])
         if inside.size > cap - n_near:
             inside = np.sort(rng.choice(inside, size=cap - n_near, replace=False))
         idx = np.concatenate([occupied[near], free[inside]])
         sets.append(LearningSet(points_set(points[idx]), y[idx], 1.0 / weights[idx]))
-    return sets, radius
-
-
-def return_voxels(scans: list[Scan], config: MapConfig) -> FloatArray:
-    """The centres of the voxels holding a return of the scans, in packed-key order.
-
-    Returns
-    -------
-    ndarray of shape (n, d)
-        Metres, world frame; the returns are those of the map's sensor model
-        (:func:`octolgp.training.config_beams`).
-    """
-    res, depth = config.resolution, config.tree_depth
-    origins, ends, max_range = stack_beams(check_scans(scans, config.dim))
-    beams = config_beams(origins, ends, max_range, config)
-    packed = np.unique(pack_keys(coord_to_key(ends[beams.is_hit], res, depth)))
-    return key_to_coord(unpack_keys(packed, config.dim), res, depth)
+    return sets
 
 
 def learning_voxel_sets(scans: list[Scan], config: MapConfig) -> list[LearningSet]:
-    """The voxel learning sets of scans, observing only the voxels near their seeds.
+    """:func:`voxel_learning_sets` of the scans, observing only the voxels the sets need.
 
-    Seeds are :func:`spread_seeds` of :func:`return_voxels`.
-    The scans are observed in a region (:class:`~octolgp.geometry.keys.KeyRegion`) of
-    balls around the seeds, grown until each set's radius fits in its ball, so the
-    sets are those :func:`sets_around` the same seeds gives on every observed voxel,
-    while the voxels far from every seed (most of a long beam's) are dropped as they
-    are walked instead of counted.
+    Two reads of the scans in regions (:class:`~octolgp.geometry.keys.KeyRegion`), each
+    exactly the whole observation there: first the blocks holding a return, which hold
+    every occupied voxel, for the seeds and each set's radius; then the balls of those
+    radii around the seeds. The sets are those of every observed voxel, while the
+    voxels far from every return and every seed (most of a long beam's) are dropped as
+    they are walked instead of counted.
 
     Raises
     ------
@@ -442,29 +425,25 @@ def learning_voxel_sets(scans: list[Scan], config: MapConfig) -> list[LearningSe
         On scans that observe no voxel or hold no return.
     """
     res, depth, dim = config.resolution, config.tree_depth, config.dim
-    centres = return_voxels(scans, config)
-    if centres.shape[0] == 0:
+    origins, ends, max_range = stack_beams(check_scans(scans, dim))
+    returns = ends[config_beams(origins, ends, max_range, config).is_hit]
+    if returns.shape[0] == 0:
         _, y, _ = voxel_observations(scans, config)
         raise _no_return() if y.size else _no_data()
-    seeds = spread_seeds(centres, config.learning.max_clusters)
-    n_near = min(config.learning.max_items_per_cluster // 2, centres.shape[0])
-    d2 = np.sum((centres[None, :, :] - seeds[:, None, :]) ** 2, axis=2)  # (k, voxels)
+    holding = KeyRegion.holding(np.unique(pack_keys(coord_to_key(returns, res, depth))), dim)
+    points, y, _ = voxel_observations(scans, config, holding)
+    occupied = points[y > 0]  # every occupied voxel is one holding a return
+    seeds = spread_seeds(occupied, config.learning.max_clusters)
+    n_near = min(config.learning.max_items_per_cluster // 2, occupied.shape[0])
+    d2 = np.sum((occupied[None, :, :] - seeds[:, None, :]) ** 2, axis=2)  # (k, voxels)
     reach = np.sqrt(np.partition(d2, n_near - 1, axis=1)[:, n_near - 1])
-    slack = 0.5 * res * np.sqrt(dim)  # a kept return lies within this of its voxel's centre
-    ball = reach + 2 * slack
-    for _ in range(REGION_TRIES):  # grown while a set may reach past its ball
-        region = KeyRegion.around(seeds, ball, res, depth)
-        points, y, weights = voxel_observations(scans, config, region)
-        if np.any(y > 0):
-            sets, radius = sets_around(points, y, weights, seeds, config)
-            short = radius > ball - slack
-            if not np.any(short):
-                return sets
-            ball = np.where(short, 2.0 * ball, ball)
-        else:
-            ball = 2.0 * ball
-    points, y, weights = voxel_observations(scans, config)
-    return sets_around(points, y, weights, seeds, config)[0]
+    # a set holds the occupied voxels within ``reach`` of its seed and the free ones
+    # whose centres are: a kept return lies within half a voxel diagonal of its centre
+    ball = reach + 0.5 * res * np.sqrt(dim)
+    points, y, weights = voxel_observations(
+        scans, config, KeyRegion.around(seeds, ball, res, depth)
+    )
+    return voxel_sets(points, y, weights, seeds, config)
 
 
 def thinned(scans: list[Scan], max_beams: int | None) -> list[Scan]:
