@@ -90,3 +90,62 @@ def test_fill_voxels_is_checked_against_the_tile_halo() -> None:
     with pytest.raises(OctolgpError, match=r"LatticeConfig\.fill_voxels"):
         LatticeConfig(fill_voxels=-2)
     assert MapConfig(dim=3, lattice=LatticeConfig(fill_voxels=1)).fill_voxels == 1
+
+
+@pytest.mark.parametrize(("dim", "fill", "leaf_log2"), [(2, 2, 4), (2, 0, 4), (3, 1, 3), (3, 1, 4)])
+def test_tiles_that_see_nothing_are_not_fitted_and_read_as_if_fitted(
+    dim: int, fill: int, leaf_log2: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A fit that leaves out the tiles without an observed voxel in their halo boxes
+    equals the fit of every tile with the voxels far from every observation masked."""
+    from octolgp.engines import lattice
+    from octolgp.engines.lattice import (
+        LatticeEvidence,
+        fit_lattice_leaves,
+        tile_layout,
+        tiles_seeing,
+    )
+    from octolgp.mapping.store import Leaf
+
+    base = MapConfig(dim=dim, resolution=0.2, hyperparameters=HP)
+    depth = base.tree_depth - leaf_log2
+    online = dataclasses.replace(base.online, leaf_depth=depth, prune=None)
+    skip = dataclasses.replace(
+        base, online=online, lattice=LatticeConfig(fill_voxels=fill)
+    ).resolve()
+    every = dataclasses.replace(skip, lattice=dataclasses.replace(skip.lattice, fill_voxels=-1))
+    rng = np.random.default_rng(7 * dim + fill + leaf_log2)
+    grid = LeafGrid.from_config(skip)
+    box = grid.side + 2 * grid.halo_voxels
+    leaves = []
+    for j in range(5):  # sparse leaves: a few rays' worth of voxels, one leaf seeing nothing
+        counts = np.zeros((2, box**dim), np.uint8)
+        if j:
+            where = rng.choice(box**dim, size=int(0.01 * box**dim) + 1, replace=False)
+            counts[1, where] = rng.integers(1, 4, where.size)
+            counts[0, where[:2]] = 2
+            counts[1, where[:2]] = 0
+        ev = LatticeEvidence(counts, np.zeros(0, np.int64), np.zeros((0, dim)))
+        leaves.append(Leaf(np.full(dim, 100 + j, np.int64), ev))
+    layout = tile_layout(grid, skip.tile_voxels)
+    stored = np.stack([leaf.evidence.counts for leaf in leaves])
+    seeing = tiles_seeing(stored, layout)
+    assert not seeing.all()  # there are tiles to leave out
+    fitted: list[int] = []
+    posterior = lattice.lattice_posterior
+
+    def counting(tables, hits, *args):  # type: ignore[no-untyped-def]
+        fitted.append(hits.shape[0])
+        return posterior(tables, hits, *args)
+
+    monkeypatch.setattr(lattice, "lattice_posterior", counting)
+    got = fit_lattice_leaves(leaves, skip, HP)
+    assert sum(fitted) == int(seeing.sum())  # only the tiles that see something
+    ref = fit_lattice_leaves(leaves, every, HP)
+    far = ~observed_near(stored, grid, fill)
+    for g, r, mask in zip(got, ref, far, strict=True):
+        for name in ("mean", "var", "prob"):
+            want = getattr(r.leaf, name).copy()
+            want[mask] = np.nan
+            np.testing.assert_array_equal(getattr(g.leaf, name), want)
+    assert np.isnan(got[0].leaf.prob).all()  # the leaf that saw nothing

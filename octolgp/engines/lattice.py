@@ -762,6 +762,10 @@ def fit_lattice_leaves(
     layout = tile_layout(grid, config.tile_voxels)
     n, n_tiles = len(leaves), layout.window.shape[0]
     todo = None if fresh is None or not fresh.any() else ~fresh.reshape(-1)
+    if 0 <= config.fill_voxels <= layout.halo:  # a tile that sees nothing has no value
+        seen = tiles_seeing(stored, layout).reshape(-1)
+        if not seen.all():
+            todo = seen if todo is None else todo & seen
     which = np.arange(n * n_tiles) if todo is None else np.flatnonzero(todo)
     leaf_of, tile_of = which // n_tiles, which % n_tiles  # the tiles to fit
     returns = kept.points
@@ -792,25 +796,53 @@ def fit_lattice_leaves(
         prob = latent_occupancy(mean, var, hp)
         return mean.astype(np.float32), var.astype(np.float32), prob.astype(np.float32)
 
-    results = [run(p) for p in parts] if pool is None or runs < 2 else list(pool.map(run, parts))
+    if not which.size:  # no tile sees anything: every voxel reads unknown
+        width = layout.voxels.shape[1]
+        results = [tuple(np.zeros((0, width), np.float32) for _ in range(3))]
+    elif pool is None or runs < 2:
+        results = [run(p) for p in parts]
+    else:
+        results = list(pool.map(run, parts))
     tile_values = [np.concatenate([r[i] for r in results]) for i in range(3)]
     if n_tiles == 1 and todo is None:
         mean, var, prob = tile_values
     else:  # the tiles' voxels into their leaves', over the values kept
         mean, var, prob = (np.empty((n, grid.voxels_per_leaf), np.float32) for _ in range(3))
-        if fresh is not None and todo is not None:
+        if fresh is not None and fresh.any():
             partial = np.flatnonzero(fresh.any(axis=1))
             for out, name in ((mean, "mean"), (var, "var"), (prob, "prob")):
                 out[partial] = _stack([getattr(leaves[j], name) for j in partial.tolist()])
         voxels = layout.voxels[tile_of]
         for out, values in zip((mean, var, prob), tile_values, strict=True):
             out[leaf_of[:, None], voxels] = values
-    if config.fill_voxels >= 0:  # no value where no voxel near was observed
+    if config.fill_voxels >= 0:  # no value where no voxel near was observed (nor fitted)
         far = ~observed_near(stored, grid, config.fill_voxels)
         for values in (mean, var, prob):
             values[far] = np.nan
     fitted = fitted_leaves(leaves, mean, var, prob, config.prune)
     return [LeafFit(leaf, 0) for leaf in fitted]
+
+
+def tiles_seeing(stored: NDArray[np.uint8], layout: TileLayout) -> NDArray[np.bool_]:
+    """Whether each tile's halo box holds an observed voxel.
+
+    A tile whose halo box holds none has no voxel within ``lattice.fill_voxels`` (at
+    most the tile's halo) of an observed one, so every voxel of it reads unknown and
+    its fit can be left out.
+
+    Parameters
+    ----------
+    stored : ndarray of uint8, shape (n, 2, H)
+        The leaves' stored counts over their halo boxes (x fastest).
+    layout : TileLayout
+
+    Returns
+    -------
+    ndarray of bool, shape (n, tiles per leaf)
+    """
+    seen = (stored[:, 0] | stored[:, 1]) > 0
+    out: NDArray[np.bool_] = seen[:, layout.window].any(axis=2)
+    return out
 
 
 def observed_near(stored: NDArray[np.uint8], grid: LeafGrid, fill: int) -> NDArray[np.bool_]:
