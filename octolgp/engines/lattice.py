@@ -841,7 +841,7 @@ def tiles_seeing(stored: NDArray[np.uint8], layout: TileLayout) -> NDArray[np.bo
     ndarray of bool, shape (n, tiles per leaf)
     """
     seen = (stored[:, 0] | stored[:, 1]) > 0
-    out: NDArray[np.bool_] = seen[:, layout.window].any(axis=2)
+    out: NDArray[np.bool_] = np.any(seen[:, layout.window], axis=2)
     return out
 
 
