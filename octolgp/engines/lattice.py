@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from octolgp.config import Hyperparameters, MapConfig
+from octolgp.engines import gather_kernel
 from octolgp.engines.base import (
     Evidence,
     LeafFit,
@@ -140,6 +141,16 @@ def halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntAr
 
 
 def _halo_pairs(
+    obs: VoxelObservations, grid: LeafGrid
+) -> tuple[IntArray, IntArray, IntArray, IntArray, tuple[int, ...], tuple[int, ...]]:
+    """:func:`halo_pairs_numpy`, by the compiled loop where numba is installed."""
+    if gather_kernel.AVAILABLE:
+        n_leaf = 1 << grid.leaf_depth
+        return gather_kernel.halo_pairs(obs.keys, grid.side, grid.halo_voxels, n_leaf)
+    return halo_pairs_numpy(obs, grid)
+
+
+def halo_pairs_numpy(
     obs: VoxelObservations, grid: LeafGrid
 ) -> tuple[IntArray, IntArray, IntArray, IntArray, tuple[int, ...], tuple[int, ...]]:
     """:func:`halo_copies`, and each pair's leaf as a cell of the pairs' bounding box.
@@ -400,7 +411,7 @@ def gather_observations(
     before_f = flat_counts[at_h + n_halo].astype(np.int64)
     # the rule and what changes, per unit (a voxel, or a copy should copies differ)
     unit, at, h0, f0 = _voxel_units(before_h, before_f, voxel, obs.n_voxels)
-    state = advance(h0, f0, obs, at, cap)
+    state = (gather_kernel.advance if gather_kernel.AVAILABLE else advance)(h0, f0, obs, at, cap)
     # what the leaf GP sees: its effective counts, and the kept returns
     eh0, ef0 = effective_counts(h0, f0, cap, obs.clear_scans)
     eh1, ef1 = effective_counts(state.hits, state.frees, cap, obs.clear_scans)
@@ -408,19 +419,35 @@ def gather_observations(
     moves = state.replace | state.drop
     effective = d_h | d_f | moves
     stored = effective | (state.hits != h0) | (state.frees != f0)
-    if unit is None:  # each copy its own unit
-        copies = np.ones(h0.size, dtype=np.int64)
-        hits_p, frees_p, effective_p, stored_p = state.hits, state.frees, effective, stored
+    if unit is not None and gather_kernel.AVAILABLE:  # one pass over the pairs
+        refit, new_counts, gained = gather_kernel.scatter_units(
+            unit,
+            at_h,
+            inverse,
+            n_halo,
+            state,
+            effective,
+            stored,
+            d_h,
+            d_f,
+            flat_counts,
+            touched.size,
+        )
     else:
-        copies = np.bincount(unit, minlength=h0.size)
-        hits_p, frees_p = state.hits[unit], state.frees[unit]
-        effective_p, stored_p = effective[unit], stored[unit]
-    flat_counts[at_h] = hits_p  # the counts become the new ones (a fresh array)
-    flat_counts[at_h + n_halo] = frees_p
-    refit = np.zeros(touched.size, dtype=bool)
-    refit[inverse[effective_p]] = True
-    new_counts = np.zeros(touched.size, dtype=bool)
-    new_counts[inverse[stored_p]] = True
+        if unit is None:  # each copy its own unit
+            copies = np.ones(h0.size, dtype=np.int64)
+            hits_p, frees_p, effective_p, stored_p = state.hits, state.frees, effective, stored
+        else:
+            copies = np.bincount(unit, minlength=h0.size)
+            hits_p, frees_p = state.hits[unit], state.frees[unit]
+            effective_p, stored_p = effective[unit], stored[unit]
+        flat_counts[at_h] = hits_p  # the counts become the new ones (a fresh array)
+        flat_counts[at_h + n_halo] = frees_p
+        refit = np.zeros(touched.size, dtype=bool)
+        refit[inverse[effective_p]] = True
+        new_counts = np.zeros(touched.size, dtype=bool)
+        new_counts[inverse[stored_p]] = True
+        gained = int(copies[d_h].sum() + copies[d_f].sum())
     mv = np.flatnonzero(moves if unit is None else moves[unit])  # pairs whose return moves
     mv_unit = mv if unit is None else unit[mv]
     returns = _moved_returns(
@@ -433,11 +460,10 @@ def gather_observations(
         pack_keys(obs.keys),
         grid.dim,
     )
-    stale = (
-        _stale_tiles(inverse[effective_p], flat[effective_p], touched.size, grid, config)
-        if fresh
-        else None
-    )
+    stale = None
+    if fresh:  # the tiles whose halo boxes hold a pair whose GP input moved
+        moved_in = effective if unit is None else effective[unit]
+        stale = _stale_tiles(inverse[moved_in], flat[moved_in], touched.size, grid, config)
     changed: list[tuple[int, Leaf]] = []
     kept: list[tuple[int, Leaf]] = []
     fresh_tiles: list[NDArray[np.bool_]] = []
@@ -464,7 +490,6 @@ def gather_observations(
                 )
         else:
             kept.append((keys[j], leaf))
-    gained = int(copies[d_h].sum() + copies[d_f].sum())
     tiles_fresh = None if stale is None or not changed else np.stack(fresh_tiles)
     return Evidence(changed, keys, gained, kept, tiles_fresh)
 

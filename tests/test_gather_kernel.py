@@ -1,0 +1,135 @@
+"""The compiled gather loops against their numpy forms: the same arrays, in the same order."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from octolgp import MapConfig, OnlineConfig, Scan
+from octolgp.engines import gather_kernel
+from octolgp.engines.lattice import halo_pairs_numpy
+from octolgp.mapping.grid import LeafGrid
+from octolgp.observations import advance, observe
+
+pytestmark = pytest.mark.skipif(not gather_kernel.AVAILABLE, reason="numba is not installed")
+
+
+def _scans(dim: int, n: int, seed: int, near_zero: bool = False) -> list[Scan]:
+    """Random scans; ``near_zero``: around the tree's lowest corner (keys near 0)."""
+    rng = np.random.default_rng(seed)
+    centre = np.full(dim, -3276.78 if near_zero else 0.0)  # the tree reaches -3276.8 m
+    out = []
+    for _ in range(n):
+        origin = centre + rng.uniform(0.5, 1.0, dim) * (1 if near_zero else rng.choice([-1, 1]))
+        ends = origin + rng.uniform(-2.5, 2.5, (300, dim))
+        if near_zero:
+            ends = np.maximum(ends, centre + 0.001)
+        out.append(Scan(origin=origin, points=ends, max_range=2.0))
+    return out
+
+
+@pytest.mark.parametrize(
+    ("dim", "leaf_log2", "halo", "near_zero"),
+    [
+        (2, 4, None, False),
+        (2, 4, None, True),
+        (3, 3, None, False),
+        (3, 3, None, True),
+        (3, 4, None, False),
+        (2, 3, 0.0, False),
+        (3, 2, 0.45, True),
+    ],
+)
+def test_halo_pairs_equal_the_numpy_form(
+    dim: int, leaf_log2: int, halo: float | None, near_zero: bool
+) -> None:
+    base = MapConfig(dim=dim, resolution=0.1)
+    online = OnlineConfig(leaf_depth=base.tree_depth - leaf_log2, halo=halo)
+    config = dataclasses.replace(base, online=online).resolve()
+    grid = LeafGrid.from_config(config)
+    obs = observe(_scans(dim, 2, 3 * dim + leaf_log2, near_zero), config)
+    want = halo_pairs_numpy(obs, grid)
+    got = gather_kernel.halo_pairs(obs.keys, grid.side, grid.halo_voxels, 1 << grid.leaf_depth)
+    for a, b in zip(got[:4], want[:4], strict=True):
+        np.testing.assert_array_equal(a, b)
+        assert a.dtype == np.int64
+    assert got[4:] == want[4:]
+
+
+def test_halo_pairs_of_no_voxel() -> None:
+    voxel, leaf, flat, cell, origin, extent = gather_kernel.halo_pairs(
+        np.zeros((0, 3), np.int64), 8, 1, 1 << 13
+    )
+    assert voxel.size == leaf.size == flat.size == cell.size == 0
+    assert origin == (0, 0, 0)
+    assert extent == (1, 1, 1)
+
+
+@pytest.mark.parametrize(("dim", "clear_scans"), [(2, 0), (2, 2), (3, 0), (3, 3)])
+def test_advance_equals_the_numpy_rule(dim: int, clear_scans: int) -> None:
+    """Every branch of the rule: random stored counts against runs of scans that see
+    voxels occupied, free, free again (forgetting) and occupied again (restarts)."""
+    config = MapConfig(dim=dim, resolution=0.1)
+    config = dataclasses.replace(
+        config, online=dataclasses.replace(config.online, clear_scans=clear_scans)
+    ).resolve()
+    rng = np.random.default_rng(dim + 10 * clear_scans)
+    scans = _scans(dim, 6, 5 * dim + clear_scans)
+    for lo, hi in ((0, 1), (0, 6), (2, 5)):
+        obs = observe(scans[lo:hi], config)
+        at = rng.integers(0, obs.n_voxels, 3 * obs.n_voxels)
+        hits = rng.integers(0, 6, at.size)
+        frees = rng.integers(0, 6, at.size)
+        for cap in (1, 3, 255):
+            want = advance(hits, frees, obs, at, cap)
+            got = gather_kernel.advance(hits, frees, obs, at, cap)
+            for name in ("hits", "frees", "position", "replace", "drop"):
+                np.testing.assert_array_equal(getattr(got, name), getattr(want, name))
+            assert got.replace.any() or not want.replace.any()
+    assert obs.clear_scans == clear_scans
+
+
+@pytest.mark.parametrize(
+    ("dim", "clear_scans", "fresh"), [(2, 0, True), (2, 2, False), (3, 3, True)]
+)
+def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
+    dim: int, clear_scans: int, fresh: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from octolgp import Hyperparameters, OnlineMap
+    from octolgp.engines.lattice import LatticeEvidence, gather_observations
+
+    hp = Hyperparameters(length_scale=0.5, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
+    base = MapConfig(dim=dim, resolution=0.1, hyperparameters=hp)
+    config = dataclasses.replace(
+        base, online=dataclasses.replace(base.online, clear_scans=clear_scans)
+    )
+    scans = _scans(dim, 5, 40 + dim)
+    m = OnlineMap(config)
+    m.insert_scans(scans[:4])
+    m.settle()
+    obs = observe(scans[4:], m.config)
+    out = []
+    for compiled in (True, False):
+        monkeypatch.setattr(gather_kernel, "AVAILABLE", compiled)
+        out.append(gather_observations(obs, m.grid, m.config, m.store.get, fresh=fresh))
+    a, b = out
+    assert a.touched == b.touched
+    assert a.new_items == b.new_items
+    for part in ("changed", "kept"):
+        pa, pb = getattr(a, part), getattr(b, part)
+        assert [k for k, _ in pa] == [k for k, _ in pb]
+        for (_, la), (_, lb) in zip(pa, pb, strict=True):
+            ea, eb = la.evidence, lb.evidence
+            assert isinstance(ea, LatticeEvidence)
+            assert isinstance(eb, LatticeEvidence)
+            np.testing.assert_array_equal(ea.counts, eb.counts)
+            np.testing.assert_array_equal(ea.hit_keys, eb.hit_keys)
+            np.testing.assert_array_equal(ea.hits, eb.hits)
+            np.testing.assert_array_equal(la.index, lb.index)
+    assert len(a.changed) > 0
+    if fresh:
+        assert a.fresh is not None
+        assert b.fresh is not None
+        np.testing.assert_array_equal(a.fresh, b.fresh)
