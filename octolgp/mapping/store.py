@@ -52,6 +52,13 @@ the store's entries): about 990 bytes measured with ``tracemalloc``, which a mem
 budget counts with the arrays."""
 
 
+NO_VALUES: Float32Array = np.zeros(0, np.float32)
+"""The values of a leaf not yet fitted: one empty array that every such leaf shares
+(it holds nothing to change), so a step that makes many new leaves makes no arrays for
+them."""
+NO_VALUES.setflags(write=False)
+
+
 @dataclass(slots=True)
 class Leaf:
     """One leaf of the map: its engine's evidence and its predicted voxels.
@@ -87,9 +94,9 @@ class Leaf:
 
     index: IntArray
     evidence: LeafEvidence
-    mean: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
-    var: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
-    prob: Float32Array = field(default_factory=lambda: np.zeros(0, np.float32))
+    mean: Float32Array = field(default_factory=lambda: NO_VALUES)
+    var: Float32Array = field(default_factory=lambda: NO_VALUES)
+    prob: Float32Array = field(default_factory=lambda: NO_VALUES)
     pruned: bool = False
     refits: int = 0
     touched: int = 0

@@ -5,6 +5,7 @@ Leaf GPs are small matrices, so parallelism is over leaves, not inside BLAS.
 
 from __future__ import annotations
 
+import functools
 import gc
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -12,6 +13,12 @@ from contextlib import contextmanager
 from typing import Any
 
 from threadpoolctl import ThreadpoolController
+
+
+@functools.cache
+def blas_controller() -> ThreadpoolController:
+    """The process's BLAS libraries, found once (finding them is the slow part of a limit)."""
+    return ThreadpoolController()
 
 
 class Workers:
@@ -26,7 +33,6 @@ class Workers:
     def __init__(self, n_jobs: int) -> None:
         self.n_jobs = n_jobs
         self._pool: ThreadPoolExecutor | None = None
-        self._blas: ThreadpoolController | None = None
 
     def pool(self, n_tasks: int) -> ThreadPoolExecutor | None:
         """The thread pool when ``n_jobs > 1`` and there is more than one task."""
@@ -38,9 +44,7 @@ class Workers:
 
     def one_blas_thread(self) -> Any:
         """A context in which BLAS runs on one thread."""
-        if self._blas is None:  # finding the BLAS libraries is the slow part: once per map
-            self._blas = ThreadpoolController()
-        return self._blas.limit(limits=1)
+        return blas_controller().limit(limits=1)
 
     def close(self) -> None:
         """Stop the threads (a later fit starts them again)."""
