@@ -269,11 +269,17 @@ def _moved_returns(
         and positions, arrays of its own.
     """
     js = np.unique(owner)
-    evidence = [None if leaves[j] is None else lattice_evidence(leaves[j]) for j in js.tolist()]
-    old_n = np.array([0 if ev is None else ev.hit_keys.size for ev in evidence], dtype=np.int64)
-    none_k, none_h = np.zeros(0, np.int64), np.zeros((0, dim))
-    old_keys = np.concatenate([none_k, *(ev.hit_keys for ev in evidence if ev is not None)])
-    old_pos = np.concatenate([none_h, *(ev.hits for ev in evidence if ev is not None)])
+    key_parts, pos_parts = [np.zeros(0, np.int64)], [np.zeros((0, dim))]
+    old_n = np.zeros(js.size, dtype=np.int64)
+    for row, j in enumerate(js.tolist()):  # one iteration per such leaf
+        leaf = leaves[j]
+        if leaf is not None:
+            ev = lattice_evidence(leaf)
+            if ev.hit_keys.size:
+                old_n[row] = ev.hit_keys.size
+                key_parts.append(ev.hit_keys)
+                pos_parts.append(ev.hits)
+    old_keys, old_pos = np.concatenate(key_parts), np.concatenate(pos_parts)
     old_owner = np.repeat(js, old_n)
     # a (leaf, voxel) code per old return and per forgotten one: the voxel by its rank
     n = packed_voxels.size

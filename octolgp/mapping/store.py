@@ -442,22 +442,24 @@ class LeafStore:
                 if leaf is not None:
                     leaf.touched = scan
         resident, sizes, move = self._leaves, self._sizes, self._leaves.move_to_end
-        keys, dirty = self._keys, self._dirty
+        keys, dirty, pending = self._keys, self._dirty, self._pending
+        total = self._nbytes
         for key, leaf in leaves:  # one iteration per new leaf
             key = int(key)
             if scan is not None:
                 leaf.touched = scan
             size = leaf.nbytes
-            self._nbytes += size - sizes.get(key, 0)
+            total += size - sizes.get(key, 0)
             sizes[key] = size
             resident[key] = leaf
             move(key)
             keys.add(key)
             dirty.add(key)
             if leaf.pending:
-                self._pending.add(key)
+                pending.add(key)
             else:
-                self._pending.discard(key)
+                pending.discard(key)
+        self._nbytes = total
 
     def remove(self, keys: Iterable[int]) -> None:
         """Drop leaves from the map (a correction left them without evidence)."""
