@@ -213,3 +213,68 @@ def test_sweep_angle_is_checked() -> None:
     assert MapConfig(dim=3).resolve().lattice.sweep_angle == 0.0
     off = dataclasses.replace(_config(0.0).resolve())
     assert swept_keys(_scans(), off).size == 0
+
+
+def test_records_keep_the_swept_voxels_and_old_records_have_none() -> None:
+    from octolgp.engines.lattice import LatticeEngine
+    from octolgp.engines.lattice_record import (
+        decode_lattice,
+        decode_lattice_swept,
+        encode_lattice,
+        encode_lattice_many,
+    )
+
+    config = _config(15.0).resolve()
+    m = OnlineMap(config)
+    m.insert_batch(_scans())
+    grid, engine = LeafGrid.from_config(config), LatticeEngine(config)
+    leaves = [leaf for _, leaf in m.leaves()]
+    evs = [lattice_evidence(leaf) for leaf in leaves]
+    assert any(ev.swept.any() for ev in evs)
+    assert any(not ev.swept.size for ev in evs)
+    indices = np.stack([leaf.index for leaf in leaves])
+    many = encode_lattice_many(
+        [ev.counts for ev in evs],
+        [ev.hit_keys for ev in evs],
+        [ev.hits for ev in evs],
+        indices,
+        grid,
+        [ev.swept for ev in evs],
+    )
+    for ev, index, blob in zip(evs, indices, many, strict=True):
+        assert blob == encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, grid, ev.swept)
+        counts, keys, hits, swept = decode_lattice_swept(blob, index, grid)
+        np.testing.assert_array_equal(counts, ev.counts)
+        np.testing.assert_array_equal(keys, ev.hit_keys)
+        np.testing.assert_array_equal(hits, ev.hits)
+        np.testing.assert_array_equal(swept, ev.swept)
+        plain = encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, grid)  # as before
+        assert decode_lattice_swept(plain, index, grid)[3].size == 0
+        np.testing.assert_array_equal(decode_lattice(blob, index, grid)[0], ev.counts)
+        back = engine.decode(engine.encode(ev), 2)
+        np.testing.assert_array_equal(back.swept, ev.swept)
+        np.testing.assert_array_equal(back.counts, ev.counts)
+
+
+def test_a_file_from_before_the_sweep_reopens_as_it_was(tmp_path) -> None:
+    import json
+    import sqlite3
+
+    path = tmp_path / "v7.olgp"
+    with OnlineMap(_config(0.0), path=path) as m:
+        m.insert_scans(_scans())
+        m.flush()
+        pts = np.random.default_rng(1).uniform(-5, 6, (3000, 2))
+        before = m.occupancy(pts)
+    con = sqlite3.connect(path)  # as version 7 wrote it: no sweep_angle in the config
+    stored = json.loads(con.execute("SELECT value FROM meta WHERE key = 'config'").fetchone()[0])
+    del stored["lattice"]["sweep_angle"]
+    con.execute("UPDATE meta SET value = ? WHERE key = 'config'", (json.dumps(stored),))
+    con.execute("UPDATE meta SET value = '7' WHERE key = 'version'")
+    con.commit()
+    con.close()
+    with OnlineMap.open(path) as m:
+        assert m.config.lattice.sweep_angle == 0.0
+        np.testing.assert_array_equal(m.occupancy(pts), before)
+        m.insert_scan(_scans()[0])  # goes on without sweeping, as it was made
+        assert not any(lattice_evidence(leaf).swept.size for _, leaf in m.leaves())
