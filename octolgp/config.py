@@ -597,9 +597,11 @@ DEFAULT_FILL_VOXELS = MappingProxyType({2: 2, 3: 1})
 :class:`LatticeConfig`): the most the default tiles allow (BENCHMARKS.md, "Honest
 unknown")."""
 
-DEFAULT_SWEEP_ANGLE = MappingProxyType({2: 2.0, 3: 0.0})
+DEFAULT_SWEEP_ANGLE = MappingProxyType({2: 2.5, 3: 0.0})
 """The default ``sweep_angle`` in degrees per dimension (see :class:`LatticeConfig`): in 2D,
-beams up to 2° apart (a 1° scanner with a dropped reading between two beams), off in 3D."""
+beams up to 2.5° apart (a 1° scanner with a dropped reading between two beams, or a 2°
+one, with room for the rounding of the scans' points), off in 3D: a 3D scan has no order
+of its beams to take neighbours from."""
 
 DEFAULT_NO_RETURN_RANGE = MappingProxyType({2: 10.0, 3: math.inf})
 """The default ``no_return_range`` in metres per dimension (see :class:`TrainingConfig`):

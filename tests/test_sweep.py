@@ -209,7 +209,7 @@ def test_sweep_angle_is_checked() -> None:
             LatticeConfig(sweep_angle=bad)  # type: ignore[arg-type]
     with pytest.raises(OctolgpError, match=r"LatticeConfig\.sweep_angle"):
         MapConfig(dim=3, lattice=LatticeConfig(sweep_angle=2.0)).resolve()
-    assert MapConfig(dim=2).resolve().lattice.sweep_angle == 2.0
+    assert MapConfig(dim=2).resolve().lattice.sweep_angle == 2.5
     assert MapConfig(dim=3).resolve().lattice.sweep_angle == 0.0
     off = dataclasses.replace(_config(0.0).resolve())
     assert swept_keys(_scans(), off).size == 0

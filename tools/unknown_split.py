@@ -11,6 +11,10 @@ points, ``--protocol hilbert``), the online map of the training scans is built i
   (``training.no_return_range = inf``);
 - *beyond every beam*: the rest, space no training beam's free segment reaches.
 
+``--every K`` keeps every K-th beam of each training scan (the test points stay those of
+the whole held-out scans): a sparser scanner, whose diverging beams leave gaps that the
+sweep rule (``--map-angle``, the map's ``LatticeConfig.sweep_angle``) makes known.
+
 Figures: BENCHMARKS.md, "The field of view between beams". Run from the repository root::
 
     .venv/bin/python tools/unknown_split.py ../shared/data/radish_2d/orebro-corrected.log.gz
@@ -53,13 +57,21 @@ def in_any_sector(scans: list[Scan], config: MapConfig, points: np.ndarray) -> n
     return out
 
 
+def thin(scan: Scan, every: int) -> Scan:
+    """The scan with every ``every``-th beam."""
+    if every == 1:
+        return scan
+    return dataclasses.replace(scan, points=scan.points[::every])
+
+
 def main(argv: list[str] | None = None) -> int:
     """Print the split per seed and its mean."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("log", help="2D CARMEN log")
     ap.add_argument("--seeds", type=int, default=5)
-    ap.add_argument("--angle", type=float, default=2.0, help="sweep angle, degrees")
+    ap.add_argument("--angle", type=float, default=2.5, help="sweep angle, degrees")
     ap.add_argument("--map-angle", type=float, default=None, help="the map's (default: its own)")
+    ap.add_argument("--every", type=int, default=1, help="keep every K-th training beam")
     args = ap.parse_args(argv)
     scans = list(load_scans(args.log))
     config = MapConfig(dim=2).resolve()
@@ -77,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for seed in range(args.seeds):
         train_idx, test_idx = heldout_split(len(scans), fraction=0.1, run=40, seed=seed)
-        train = [scans[i] for i in train_idx]
+        train = [thin(scans[i], args.every) for i in train_idx]
         points, labels = hilbert_points([scans[i] for i in test_idx], np.random.default_rng(seed))
         hp = learn_hyperparameters(map_scans(train[: config.learn_scans], config), config)
         m = build_tiled(train, dataclasses.replace(config, hyperparameters=hp))
