@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 from octolgp.config import MapConfig
 from octolgp.geometry.keys import KeyRegion, pack_keys
 from octolgp.scan import Scan
-from octolgp.training import IntArray, config_beams, stack_beams
+from octolgp.training import IntArray, free_lengths, stack_beams
 
 SAMPLES_PER_BLOCK = 1 << 20
 """Polar samples of the sectors handled at once (bounds the transient arrays)."""
@@ -74,13 +74,15 @@ def beam_sectors(
     if config.sweep_angle <= 0 or not scans:
         return np.zeros((0, 2)), none, none, none
     origins, ends, max_range = stack_beams(scans)
-    beams = config_beams(origins, ends, max_range, config)
+    vec = ends - origins
+    length = np.hypot(vec[:, 0], vec[:, 1])
+    valid, _, _, free_len = free_lengths(
+        length, max_range, config.free_margin, config.free_range, config.no_return_range
+    )
     scan = np.repeat(np.arange(len(scans), dtype=np.int64), [len(s) for s in scans])
-    valid = beams.length > 1e-9  # a beam with a direction
-    vec = (ends - origins)[valid]
-    reach = np.where(beams.has_seg, np.linalg.norm(beams.free_end - origins, axis=1), 0.0)[valid]
+    reach = np.maximum(free_len[valid], 0.0)
+    vec, scan, origins = vec[valid], scan[valid], origins[valid]
     angle = np.arctan2(vec[:, 1], vec[:, 0])
-    scan, origins = scan[valid], origins[valid]
     order = np.lexsort((reach, angle, scan))
     scan, angle, reach, origins = scan[order], angle[order], reach[order], origins[order]
     # each beam with the next one of its scan; a scan's last beam with its first
@@ -138,8 +140,8 @@ def swept_keys(scans: list[Scan], config: MapConfig, region: KeyRegion | None = 
     empty = np.zeros(0, dtype=np.int64)
     if config.dim != 2 or config.fill_voxels < 0 or config.sweep_angle <= 0:
         return empty
-    origin, start, width, reach = beam_sectors(scans, config)
     res = config.resolution
+    origin, start, width, reach = beam_sectors(scans, config)
     near = (config.fill_voxels + 0.5) * res * _SAFETY / np.sin(width / 2.0)
     far = reach >= near
     origin, start, width, reach, near = (a[far] for a in (origin, start, width, reach, near))
