@@ -205,11 +205,15 @@ def encode_lattice_many(
     box = grid.side + 2 * grid.halo_voxels
     n_halo = box**d
     out: list[bytes | None] = [None] * len(counts)
-    if swept is not None and any(s.size and s.any() for s in swept):  # rare: leaf by leaf
-        return [
-            encode_lattice(c, k, p, i, grid, s)
-            for c, k, p, i, s in zip(counts, hit_keys, hits, indices, swept, strict=True)
-        ]
+    sweeps = [] if swept is None else [j for j, s in enumerate(swept) if s.size and s.any()]
+    if swept is not None and sweeps:  # the few leaves with swept voxels one by one
+        rest = sorted(set(range(len(counts))) - set(sweeps))
+        pick = [counts[j] for j in rest], [hit_keys[j] for j in rest], [hits[j] for j in rest]
+        for j, blob in zip(rest, encode_lattice_many(*pick, indices[rest], grid), strict=True):
+            out[j] = blob
+        for j in sweeps:
+            out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid, swept[j])
+        return [b for b in out if b is not None]
     whole = [j for j, c in enumerate(counts) if c.shape == (2, n_halo)]
     for j in sorted(set(range(len(counts))) - set(whole)):  # unsized leaves, one by one
         out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid)
