@@ -278,3 +278,28 @@ def test_a_file_from_before_the_sweep_reopens_as_it_was(tmp_path) -> None:
         np.testing.assert_array_equal(m.occupancy(pts), before)
         m.insert_scan(_scans()[0])  # goes on without sweeping, as it was made
         assert not any(lattice_evidence(leaf).swept.size for _, leaf in m.leaves())
+
+
+def test_a_corrected_scan_sweeps_as_it_would_from_the_start() -> None:
+    from octolgp.mapping.correction import transform_scan
+
+    scans = _scans()
+    T = np.eye(3)
+    T[:2, 2] = [0.31, -0.17]
+    m = OnlineMap(_config(15.0))
+    m.insert_scans(scans)
+    m.flush()
+    m.correct_scans({2: T})
+    m.flush()
+    fresh = OnlineMap(_config(15.0))
+    fresh.insert_scans([scans[0], transform_scan(scans[1], T), scans[2]])
+    fresh.flush()
+    got, want = dict(m.leaves()), dict(fresh.leaves())
+    assert got.keys() == want.keys()
+    assert any(lattice_evidence(leaf).swept.any() for leaf in want.values())
+    for k, leaf in want.items():
+        a, b = lattice_evidence(leaf), lattice_evidence(got[k])
+        np.testing.assert_array_equal(a.counts, b.counts)
+        np.testing.assert_array_equal(a.swept, b.swept)
+    pts = np.random.default_rng(2).uniform(-5, 6, (4000, 2))
+    np.testing.assert_array_equal(m.occupancy(pts), fresh.occupancy(pts))
