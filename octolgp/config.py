@@ -518,6 +518,16 @@ class LatticeConfig:
         the last observation are not. At most the tile's halo in voxels. ``-1``: every
         voxel of a leaf takes the GP's value (files written before this setting).
         ``None`` (default): :data:`DEFAULT_FILL_VOXELS`.
+    sweep_angle : float or None
+        The field of view between beams counts as seen (2D scans): two beams of a scan
+        adjacent in direction and at most this many degrees apart sweep the sector
+        between them, up to the nearer of their free segments' ends (the return less
+        ``free_margin``, or the no-return range), and every voxel whose centre lies in
+        that sector counts as observed for ``fill_voxels`` (it is known), without being
+        evidence for the GP. Space beyond every beam's free segment and rooms no beam
+        entered stay unknown. ``0`` turns the rule off (files written before this
+        setting); 3D scans take ``0`` only. ``None`` (default):
+        :data:`DEFAULT_SWEEP_ANGLE`.
     """
 
     evidence_cap: int = 1
@@ -528,9 +538,12 @@ class LatticeConfig:
     tile_voxels: int | None = None
     min_inducing_per_axis: int | None = None
     fill_voxels: int | None = None
+    sweep_angle: float | None = None
 
     def __post_init__(self) -> None:
         _integer("LatticeConfig", "evidence_cap", self.evidence_cap, 1, 255)
+        if self.sweep_angle is not None:
+            _positive("LatticeConfig", "sweep_angle", self.sweep_angle, allow_zero=True, high=90.0)
         if self.fill_voxels is not None:
             _integer("LatticeConfig", "fill_voxels", self.fill_voxels, -1, 1 << 15)
         _positive("LatticeConfig", "free_weight", self.free_weight, low=1e-6, high=1e6)
@@ -583,6 +596,12 @@ DEFAULT_FILL_VOXELS = MappingProxyType({2: 2, 3: 1})
 """The default ``fill_voxels`` per dimension, capped by the tile's halo (see
 :class:`LatticeConfig`): the most the default tiles allow (BENCHMARKS.md, "Honest
 unknown")."""
+
+DEFAULT_SWEEP_ANGLE = MappingProxyType({2: 2.5, 3: 0.0})
+"""The default ``sweep_angle`` in degrees per dimension (see :class:`LatticeConfig`): in 2D,
+beams up to 2.5° apart (a 1° scanner with a dropped reading between two beams, or a 2°
+one, with room for the rounding of the scans' points), off in 3D: a 3D scan has no order
+of its beams to take neighbours from."""
 
 DEFAULT_NO_RETURN_RANGE = MappingProxyType({2: 10.0, 3: math.inf})
 """The default ``no_return_range`` in metres per dimension (see :class:`TrainingConfig`):
@@ -708,6 +727,11 @@ class MapConfig:
                 f"LatticeConfig.fill_voxels must be -1 or at most the tile's halo "
                 f"({self.tile_halo_voxels} voxels), got {self.fill_voxels}"
             )
+        if self.dim == 3 and self.sweep_angle:
+            raise OctolgpError(
+                f"LatticeConfig.sweep_angle must be 0 for 3D scans (the rule is 2D's), "
+                f"got {self.sweep_angle!r}"
+            )
         online = dataclasses.replace(
             self.online,
             leaf_depth=self.leaf_depth,
@@ -724,6 +748,7 @@ class MapConfig:
             tile_voxels=self.tile_voxels,
             min_inducing_per_axis=self.min_inducing_per_axis,
             fill_voxels=self.fill_voxels,
+            sweep_angle=self.sweep_angle,
         )
         training = dataclasses.replace(
             self.training, free_margin=self.free_margin, no_return_range=self.no_return_range
@@ -776,6 +801,13 @@ class MapConfig:
         if self.lattice.fill_voxels is not None:
             return self.lattice.fill_voxels
         return min(DEFAULT_FILL_VOXELS[self.dim], self.tile_halo_voxels)
+
+    @property
+    def sweep_angle(self) -> float:
+        """Degrees between two beams whose sector counts as seen (or its default; 0: off)."""
+        if self.lattice.sweep_angle is not None:
+            return float(self.lattice.sweep_angle)
+        return DEFAULT_SWEEP_ANGLE[self.dim]
 
     @property
     def tile_halo_voxels(self) -> int:

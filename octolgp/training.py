@@ -153,21 +153,51 @@ def split_beams(
     """
     vec = ends - origins
     length = np.linalg.norm(vec, axis=1)
+    valid, no_return, truncated, free_len = free_lengths(
+        length, max_range, free_margin, free_range, no_return_range
+    )
+    is_hit = valid & ~no_return & ~truncated
+    direction = np.zeros_like(vec)
+    direction[valid] = vec[valid] / length[valid, None]
+    has_seg = valid & (free_len > 1e-9)
+    free_end = origins + direction * np.maximum(free_len, 0.0)[:, None]
+    return Beams(length, is_hit, has_seg, free_end)
+
+
+def free_lengths(
+    length: FloatArray,
+    max_range: FloatArray,
+    free_margin: float,
+    free_range: float = math.inf,
+    no_return_range: float = math.inf,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_], FloatArray]:
+    """Each beam's kind and free-segment length (:func:`split_beams`'s rule).
+
+    Parameters
+    ----------
+    length : ndarray of shape (b,)
+        Each beam's length, metres.
+    max_range, free_margin, free_range, no_return_range
+        As :func:`split_beams` takes them.
+
+    Returns
+    -------
+    valid, no_return, truncated : ndarray of bool, shape (b,)
+        The beam has a direction; it is a no-return; it is a return beyond
+        ``free_range``.
+    free_len : ndarray of shape (b,)
+        Its free segment's length (``<= 0``: none).
+    """
     valid = length > 1e-9  # an endpoint on the sensor carries no direction
     # relative tolerance: a range reported at exactly max_range must not round into a hit
     no_return = valid & (length >= max_range * (1.0 - NO_RETURN_RTOL))
     truncated = valid & ~no_return & (length > free_range)
-    is_hit = valid & ~no_return & ~truncated
-    direction = np.zeros_like(vec)
-    direction[valid] = vec[valid] / length[valid, None]
     # Free segment: to max_range for no-returns, else stop free_margin short of the hit;
     # no farther than free_range.
     reach = np.minimum(np.minimum(length, max_range), no_return_range)
     free_len = np.where(no_return, reach, length - free_margin)
     free_len = np.where(truncated, free_range, np.minimum(free_len, free_range))
-    has_seg = valid & (free_len > 1e-9)
-    free_end = origins + direction * np.maximum(free_len, 0.0)[:, None]
-    return Beams(length, is_hit, has_seg, free_end)
+    return valid, no_return, truncated, free_len
 
 
 def config_beams(

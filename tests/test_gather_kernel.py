@@ -50,7 +50,7 @@ def test_halo_pairs_equal_the_numpy_form(
     config = dataclasses.replace(base, online=online).resolve()
     grid = LeafGrid.from_config(config)
     obs = observe(_scans(dim, 2, 3 * dim + leaf_log2, near_zero), config)
-    want = halo_pairs_numpy(obs, grid)
+    want = halo_pairs_numpy(obs.keys, grid)
     got = gather_kernel.halo_pairs(obs.keys, grid.side, grid.halo_voxels, 1 << grid.leaf_depth)
     for a, b in zip(got[:4], want[:4], strict=True):
         np.testing.assert_array_equal(a, b)
@@ -99,6 +99,7 @@ def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
 ) -> None:
     from octolgp import Hyperparameters, OnlineMap
     from octolgp.engines.lattice import LatticeEvidence, gather_observations
+    from octolgp.sweep import swept_keys
 
     hp = Hyperparameters(length_scale=0.5, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
     base = MapConfig(dim=dim, resolution=0.1, hyperparameters=hp)
@@ -110,10 +111,13 @@ def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
     m.insert_scans(scans[:4])
     m.settle()
     obs = observe(scans[4:], m.config)
+    swept = swept_keys(scans[4:], m.config)
     out = []
     for compiled in (True, False):
         monkeypatch.setattr(gather_kernel, "AVAILABLE", compiled)
-        out.append(gather_observations(obs, m.grid, m.config, m.store.get, fresh=fresh))
+        out.append(
+            gather_observations(obs, m.grid, m.config, m.store.get, fresh=fresh, swept=swept)
+        )
     a, b = out
     assert a.touched == b.touched
     assert a.new_items == b.new_items
@@ -127,6 +131,7 @@ def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
             np.testing.assert_array_equal(ea.counts, eb.counts)
             np.testing.assert_array_equal(ea.hit_keys, eb.hit_keys)
             np.testing.assert_array_equal(ea.hits, eb.hits)
+            np.testing.assert_array_equal(ea.swept, eb.swept)
             np.testing.assert_array_equal(la.index, lb.index)
     assert len(a.changed) > 0
     if fresh:

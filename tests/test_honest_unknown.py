@@ -118,18 +118,24 @@ def test_tiles_that_see_nothing_are_not_fitted_and_read_as_if_fitted(
     grid = LeafGrid.from_config(skip)
     box = grid.side + 2 * grid.halo_voxels
     leaves = []
-    for j in range(5):  # sparse leaves: a few rays' worth of voxels, one leaf seeing nothing
+    swept_only = np.zeros(box**dim, dtype=bool)
+    swept_only[rng.choice(box**dim, size=3, replace=False)] = True
+    for j in range(6):  # sparse leaves: one seeing nothing, one swept only
         counts = np.zeros((2, box**dim), np.uint8)
-        if j:
+        if 0 < j < 5:
             where = rng.choice(box**dim, size=int(0.01 * box**dim) + 1, replace=False)
             counts[1, where] = rng.integers(1, 4, where.size)
             counts[0, where[:2]] = 2
             counts[1, where[:2]] = 0
-        ev = LatticeEvidence(counts, np.zeros(0, np.int64), np.zeros((0, dim)))
+        swept = swept_only if j == 5 else np.zeros(0, dtype=bool)
+        ev = LatticeEvidence(counts, np.zeros(0, np.int64), np.zeros((0, dim)), swept)
         leaves.append(Leaf(np.full(dim, 100 + j, np.int64), ev))
     layout = tile_layout(grid, skip.tile_voxels)
     stored = np.stack([leaf.evidence.counts for leaf in leaves])
-    seeing = tiles_seeing(stored, layout)
+    swept_all = np.zeros((len(leaves), box**dim), dtype=bool)
+    swept_all[5] = swept_only
+    seeing = tiles_seeing(stored, layout, swept_all)
+    assert seeing[5].any()  # a swept voxel is seen
     assert not seeing.all()  # there are tiles to leave out
     fitted: list[int] = []
     posterior = lattice.lattice_posterior
@@ -142,10 +148,11 @@ def test_tiles_that_see_nothing_are_not_fitted_and_read_as_if_fitted(
     got = fit_lattice_leaves(leaves, skip, HP)
     assert sum(fitted) == int(seeing.sum())  # only the tiles that see something
     ref = fit_lattice_leaves(leaves, every, HP)
-    far = ~observed_near(stored, grid, fill)
+    far = ~observed_near(stored, grid, fill, swept_all)
     for g, r, mask in zip(got, ref, far, strict=True):
         for name in ("mean", "var", "prob"):
             want = getattr(r.leaf, name).copy()
             want[mask] = np.nan
             np.testing.assert_array_equal(getattr(g.leaf, name), want)
     assert np.isnan(got[0].leaf.prob).all()  # the leaf that saw nothing
+    assert np.isfinite(got[5].leaf.prob).any()  # the swept one holds values near its voxels

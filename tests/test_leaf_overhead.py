@@ -48,11 +48,15 @@ def reference_gather(
     lookup: Lookup,
     *,
     fresh: bool = True,
+    swept: np.ndarray | None = None,
 ) -> Evidence:
     """The gather done plainly: the rule on every voxel copy, one leaf at a time.
 
     It works out no fresh tiles (``fresh`` is unused): its leaves are refitted whole.
+    The scenes here sweep no voxel between beams (``swept`` is empty).
     """
+    if swept is not None and swept.size:
+        raise NotImplementedError("the reference gather takes no swept voxels")
     voxel, leaf_key, flat = halo_copies(obs, grid)
     touched = np.unique(leaf_key)
     inverse = np.searchsorted(touched, leaf_key)

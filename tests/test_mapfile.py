@@ -45,11 +45,13 @@ WHOLE = dataclasses.replace(
         inducing_spacing=0.3,
         min_inducing_per_axis=8,
         fill_voxels=-1,
+        sweep_angle=0.0,
     ),
     training=dataclasses.replace(CONFIG.training, no_return_range=math.inf),
 )
 """A 2D map as files from before lattice tiles hold it: leaves of 16 fitted whole (and
-every voxel of a leaf filled, every no-return whole, as then)."""
+every voxel of a leaf filled, every no-return whole, nothing swept between beams, as
+then)."""
 
 
 def _scans() -> list:  # type: ignore[type-arg]
@@ -329,7 +331,7 @@ def _as_version_2(path: Path, meta_clear_scans: int | None) -> None:
         online.pop(name, None)
     lattice, exact = stored.pop("lattice"), stored.pop("exact")
     names = ("inducing_spacing", "max_inducing_per_axis", "clear_margin", "tile_voxels")
-    for name in (*names, "min_inducing_per_axis", "fill_voxels"):  # the last two came later
+    for name in (*names, "min_inducing_per_axis", "fill_voxels", "sweep_angle"):  # came later
         lattice.pop(name, None)
     stored["training"].pop("no_return_range", None)  # as did this
     online.update(lattice, **exact, prune_free=0.1192, prune_occupied=0.971)

@@ -4,8 +4,10 @@ Figures: BENCHMARKS.md, "Honest unknown and the free range".
 
 Per log (Intel, shipped; FR079 from ``../shared/data`` when present) and setting (how far
 a no-return beam is free, ``TrainingConfig.no_return_range``; how far the GP fills,
-``LatticeConfig.fill_voxels``; the rest the default config, hyperparameters learnt as a
-user gets them), the whole log is mapped and the table gives:
+``LatticeConfig.fill_voxels``; the widest angle between two beams whose sector counts as
+seen, ``LatticeConfig.sweep_angle``, 0 in the rows from before it; the rest the default
+config, hyperparameters learnt as a user gets them), the whole log is mapped and the
+table gives:
 
 - the map's extent (the box of its voxels, as ``octolgp export`` draws it) and its cells
   free / unknown / occupied at nav2's thresholds (P <= 0.25, P >= 0.65; a cell holding no
@@ -43,7 +45,14 @@ LOGS = {
     "intel": ROOT / "data" / "intel_lab" / "intel-corrected.log.gz",
     "fr079": ROOT.parent / "shared" / "data" / "fr079" / "freiburg-079-corrected.log.gz",
 }
-SETTINGS = [(math.inf, -1), (10.0, -1), (math.inf, 2), (10.0, 2), (10.0, 1)]
+SETTINGS = [
+    (math.inf, -1, 0.0),
+    (10.0, -1, 0.0),
+    (math.inf, 2, 0.0),
+    (10.0, 2, 0.0),
+    (10.0, 1, 0.0),
+    (10.0, 2, 2.5),
+]
 
 
 def cells(points: np.ndarray, res: float) -> np.ndarray:
@@ -51,13 +60,15 @@ def cells(points: np.ndarray, res: float) -> np.ndarray:
     return np.floor(points / res).astype(np.int64)
 
 
-def measure(scans: list[Scan], no_return: float, fill: int, res: float) -> dict[str, float]:
+def measure(
+    scans: list[Scan], no_return: float, fill: int, res: float, sweep: float = 0.0
+) -> dict[str, float]:
     """Map the scans with one setting; the figures of the module's docstring."""
     config = MapConfig(
         dim=2,
         resolution=res,
         training=TrainingConfig(no_return_range=no_return),
-        lattice=LatticeConfig(fill_voxels=fill),
+        lattice=LatticeConfig(fill_voxels=fill, sweep_angle=sweep),
     )
     t = time.perf_counter()
     m = OnlineMap(config)
@@ -121,21 +132,22 @@ def main() -> int:
     ap.add_argument("--limit", type=int, default=None, help="first N scans of each log")
     args = ap.parse_args()
     print(
-        "| log | no-return range m | fill voxels | extent m | cells | free | unknown | occupied | "
+        "| log | no-return range m | fill voxels | sweep ° | extent m | cells | free | unknown | "
+        "occupied | "
         "unseen cells in the building | of them unknown | of them free | deep unseen | of them "
         "unknown | of them free | free cells outside the building | s |"
     )
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name in args.logs.split(","):
         path = LOGS[name]
         if not path.exists():
             print(f"{name} skipped: {path} is absent (../shared/data is not part of a clone)")
             continue
         scans = list(load_scans(path))[: args.limit]
-        for no_return, fill in SETTINGS:
-            r = measure(scans, no_return, fill, 0.1)
+        for no_return, fill, sweep in SETTINGS:
+            r = measure(scans, no_return, fill, 0.1, sweep)
             print(
-                f"| {name} | {no_return:g} | {fill} | {r['extent_m']} | {r['cells']:,} | "
+                f"| {name} | {no_return:g} | {fill} | {sweep:g} | {r['extent_m']} | {r['cells']:,} | "
                 f"{r['free']:,} | {r['unknown']:,} | {r['occupied']:,} | {r['unseen']:,} | "
                 f"{r['unseen_unknown']:.3f} | {r['unseen_free']:.3f} | {r['deep']:,} | "
                 f"{r['deep_unknown']:.3f} | {r['deep_free']:.3f} | {r['free_outside']:,} | "

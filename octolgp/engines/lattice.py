@@ -40,7 +40,11 @@ from octolgp.engines.base import (
     read_arrays,
     stage,
 )
-from octolgp.engines.lattice_record import decode_lattice, encode_lattice, encode_lattice_many
+from octolgp.engines.lattice_record import (
+    decode_lattice_swept,
+    encode_lattice,
+    encode_lattice_many,
+)
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import KEY_BITS, pack_keys, unpack_keys
 from octolgp.gp.lattice import (
@@ -62,9 +66,12 @@ from octolgp.observations import (
     observe,
 )
 from octolgp.scan import FloatArray, Scan
+from octolgp.sweep import swept_keys
 from octolgp.training import IntArray
 
 _SIZES = struct.Struct("<qq")  # halo voxels of the counts, kept returns
+_NONE_SWEPT = np.zeros(0, dtype=bool)
+_NONE_SWEPT.setflags(write=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -80,11 +87,16 @@ class LatticeEvidence:
         Packed voxel keys of the voxels holding a return, ascending.
     hits : ndarray of shape (r, d)
         The return kept for each of them, metres, world frame.
+    swept : ndarray of bool, shape (H,) or (0,)
+        Per halo-box voxel, whether a scan swept it between two beams
+        (:func:`octolgp.sweep.swept_keys`): known for ``LatticeConfig.fill_voxels``, no
+        evidence for the GP. Length 0: none swept.
     """
 
     counts: NDArray[np.uint8]
     hit_keys: IntArray
     hits: FloatArray
+    swept: NDArray[np.bool_] = dataclasses.field(default_factory=lambda: _NONE_SWEPT)
 
     @classmethod
     def empty(cls, dim: int) -> LatticeEvidence:
@@ -99,7 +111,7 @@ class LatticeEvidence:
     @property
     def nbytes(self) -> int:
         """Bytes held by the arrays."""
-        return self.counts.nbytes + self.hit_keys.nbytes + self.hits.nbytes
+        return self.counts.nbytes + self.hit_keys.nbytes + self.hits.nbytes + self.swept.nbytes
 
 
 def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
@@ -137,23 +149,25 @@ def halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntAr
     Returns the voxel (index into ``obs``), the leaf's packed key and the voxel's flat
     index in that leaf's halo box, per pair; pairs are grouped by the neighbour offset.
     """
-    return _halo_pairs(obs, grid)[:3]
+    return _halo_pairs(obs.keys, grid)[:3]
 
 
 def _halo_pairs(
-    obs: VoxelObservations, grid: LeafGrid
+    voxel_keys: IntArray, grid: LeafGrid
 ) -> tuple[IntArray, IntArray, IntArray, IntArray, tuple[int, ...], tuple[int, ...]]:
     """:func:`halo_pairs_numpy`, by the compiled loop where numba is installed."""
     if gather_kernel.AVAILABLE:
         n_leaf = 1 << grid.leaf_depth
-        return gather_kernel.halo_pairs(obs.keys, grid.side, grid.halo_voxels, n_leaf)
-    return halo_pairs_numpy(obs, grid)
+        return gather_kernel.halo_pairs(voxel_keys, grid.side, grid.halo_voxels, n_leaf)
+    return halo_pairs_numpy(voxel_keys, grid)
 
 
 def halo_pairs_numpy(
-    obs: VoxelObservations, grid: LeafGrid
+    voxel_keys: IntArray, grid: LeafGrid
 ) -> tuple[IntArray, IntArray, IntArray, IntArray, tuple[int, ...], tuple[int, ...]]:
-    """:func:`halo_copies`, and each pair's leaf as a cell of the pairs' bounding box.
+    """:func:`halo_copies` of the voxels ``voxel_keys`` (n, d), with each pair's leaf cell.
+
+    A pair's cell is its leaf's place in the box of the pairs' leaves.
 
     Returns
     -------
@@ -168,7 +182,7 @@ def halo_pairs_numpy(
     side, halo, d = grid.side, grid.halo_voxels, grid.dim
     box = side + 2 * halo
     n_leaf = 1 << grid.leaf_depth
-    cols = [np.ascontiguousarray(obs.keys[:, a]) for a in range(d)]
+    cols = [np.ascontiguousarray(voxel_keys[:, a]) for a in range(d)]
     lo = [(c - halo) // side for c in cols]  # the lower leaf per axis
     # per axis: whether the lower and the upper leaf (lo + 1) hold the voxel in their halo
     has = [
@@ -376,6 +390,7 @@ def gather_observations(
     lookup: Lookup,
     *,
     fresh: bool = True,
+    swept: IntArray | None = None,
 ) -> Evidence:
     """Apply a step's voxel observations to the leaves whose halo boxes hold the voxels.
 
@@ -398,14 +413,27 @@ def gather_observations(
     fresh : bool
         Whether to work out the tiles of each changed leaf that a refit may keep
         (``Evidence.fresh``); a map that fits later refits its leaves whole.
+    swept : ndarray of int64, shape (m,), optional
+        Packed keys of the voxels the step's scans swept (:func:`octolgp.sweep.swept_keys`):
+        each leaf whose halo box holds one keeps it as swept (a leaf is made for it
+        where none is), and a leaf with a newly swept voxel is refitted.
 
     Returns
     -------
     Evidence
         ``new_items`` counts the (voxel, class) inputs of leaf GPs that changed.
     """
-    voxel, leaf_key, flat, cell, origin, extent = _halo_pairs(obs, grid)
+    n_obs = obs.n_voxels
+    voxel_keys = obs.keys
+    if swept is not None and swept.size:
+        voxel_keys = np.concatenate([obs.keys, unpack_keys(swept, grid.dim)])
+    voxel, leaf_key, flat, cell, origin, extent = _halo_pairs(voxel_keys, grid)
     touched, inverse = _touched_leaves(leaf_key, cell, origin, extent)
+    swept_pairs = None
+    if voxel_keys is not obs.keys:  # the swept voxels' pairs apart
+        is_swept = voxel >= n_obs
+        swept_pairs = (inverse[is_swept], flat[is_swept])
+        voxel, flat, inverse = voxel[~is_swept], flat[~is_swept], inverse[~is_swept]
     keys = touched.tolist()
     n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
     current = [lookup(key) for key in keys]  # one call per touched leaf
@@ -454,6 +482,18 @@ def gather_observations(
         new_counts = np.zeros(touched.size, dtype=bool)
         new_counts[inverse[stored_p]] = True
         gained = int(copies[d_h].sum() + copies[d_f].sum())
+    stale_leaf = stale_flat = np.zeros(0, dtype=np.int64)
+    if fresh:  # the pairs whose GP input moved
+        moved_in = effective if unit is None else effective[unit]
+        stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
+    new_swept: dict[int, NDArray[np.bool_]] = {}
+    if swept_pairs is not None:
+        new_swept, gained_at = _sweep_leaves(current, swept_pairs, n_halo)
+        grown = np.fromiter(new_swept, dtype=np.int64, count=len(new_swept))
+        refit[grown] = True  # which voxels are known moved
+        new_counts[grown] = True
+        stale_leaf = np.concatenate([stale_leaf, gained_at[0]])
+        stale_flat = np.concatenate([stale_flat, gained_at[1]])
     mv = np.flatnonzero(moves if unit is None else moves[unit])  # pairs whose return moves
     mv_unit = mv if unit is None else unit[mv]
     returns = _moved_returns(
@@ -466,10 +506,7 @@ def gather_observations(
         pack_keys(obs.keys),
         grid.dim,
     )
-    stale = None
-    if fresh:  # the tiles whose halo boxes hold a pair whose GP input moved
-        moved_in = effective if unit is None else effective[unit]
-        stale = _stale_tiles(inverse[moved_in], flat[moved_in], touched.size, grid, config)
+    stale = _stale_tiles(stale_leaf, stale_flat, touched.size, grid, config) if fresh else None
     changed: list[tuple[int, Leaf]] = []
     kept: list[tuple[int, Leaf]] = []
     fresh_tiles: list[NDArray[np.bool_]] = []
@@ -481,11 +518,14 @@ def gather_observations(
         moved = returns.get(j)
         if leaf is None:
             hit_keys, hits = moved or (np.zeros(0, np.int64), np.zeros((0, grid.dim)))
-            leaf = Leaf(touched_index[j].copy(), LatticeEvidence(row.copy(), hit_keys, hits))
+            swept_j = new_swept.get(j, _NONE_SWEPT)
+            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j)
+            leaf = Leaf(touched_index[j].copy(), evidence)
         else:
             ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_counts
             hit_keys, hits = (ev.hit_keys, ev.hits) if moved is None else moved
-            leaf = leaf.with_evidence(LatticeEvidence(row.copy(), hit_keys, hits))
+            swept_j = new_swept.get(j, ev.swept)
+            leaf = leaf.with_evidence(LatticeEvidence(row.copy(), hit_keys, hits, swept_j))
         if r:
             changed.append((keys[j], leaf))
             if stale is not None:  # tiles keep their values only where the leaf holds all
@@ -498,6 +538,45 @@ def gather_observations(
             kept.append((keys[j], leaf))
     tiles_fresh = None if stale is None or not changed else np.stack(fresh_tiles)
     return Evidence(changed, keys, gained, kept, tiles_fresh)
+
+
+def _sweep_leaves(
+    leaves: list[Leaf | None], pairs: tuple[IntArray, IntArray], n_halo: int
+) -> tuple[dict[int, NDArray[np.bool_]], tuple[IntArray, IntArray]]:
+    """The swept voxels of the leaves where a step sweeps a voxel not swept before.
+
+    Parameters
+    ----------
+    leaves : list of Leaf or None
+        The touched leaves (``None``: new).
+    pairs : tuple of ndarray of int64, shape (p,)
+        Per (swept voxel, leaf) pair: the leaf (index into ``leaves``) and the voxel's
+        flat index in its halo box.
+    n_halo : int
+
+    Returns
+    -------
+    swept : dict
+        Per leaf whose swept voxels grow: all of them, shape (n_halo,), an array of its own.
+    gained : tuple of ndarray of int64
+        The newly swept voxels: their leaves and flat indices.
+    """
+    owner, flat = pairs
+    js = np.unique(owner)
+    rank = np.searchsorted(js, owner)
+    before = np.zeros((js.size, n_halo), dtype=bool)
+    for row, j in enumerate(js.tolist()):  # one iteration per leaf swept
+        leaf = leaves[j]
+        if leaf is not None:
+            old = lattice_evidence(leaf).swept
+            if old.size == n_halo:
+                before[row] = old
+    after = before.copy()
+    after[rank, flat] = True
+    new = after & ~before
+    grown = np.flatnonzero(new.any(axis=1))
+    rows, cols = np.nonzero(new)
+    return {int(js[r]): after[r].copy() for r in grown.tolist()}, (js[rows], cols)
 
 
 def _stale_tiles(
@@ -793,8 +872,14 @@ def fit_lattice_leaves(
     layout = tile_layout(grid, config.tile_voxels)
     n, n_tiles = len(leaves), layout.window.shape[0]
     todo = None if fresh is None or not fresh.any() else ~fresh.reshape(-1)
+    swept = None  # the leaves' swept voxels, where any leaf has some
+    if any(ev.swept.size for ev in evidence):
+        swept = np.zeros((n, stored.shape[2]), dtype=bool)
+        for row, ev in enumerate(evidence):  # one iteration per leaf
+            if ev.swept.size:
+                swept[row] = ev.swept
     if 0 <= config.fill_voxels <= layout.halo:  # a tile that sees nothing has no value
-        seen = tiles_seeing(stored, layout).reshape(-1)
+        seen = tiles_seeing(stored, layout, swept).reshape(-1)
         if not seen.all():
             todo = seen if todo is None else todo & seen
     which = np.arange(n * n_tiles) if todo is None else np.flatnonzero(todo)
@@ -846,38 +931,51 @@ def fit_lattice_leaves(
         voxels = layout.voxels[tile_of]
         for out, values in zip((mean, var, prob), tile_values, strict=True):
             out[leaf_of[:, None], voxels] = values
-    if config.fill_voxels >= 0:  # no value where no voxel near was observed (nor fitted)
-        far = ~observed_near(stored, grid, config.fill_voxels)
+    if config.fill_voxels >= 0:  # no value where no voxel near was observed or swept
+        far = ~observed_near(stored, grid, config.fill_voxels, swept)
         for values in (mean, var, prob):
             values[far] = np.nan
     fitted = fitted_leaves(leaves, mean, var, prob, config.prune)
     return [LeafFit(leaf, 0) for leaf in fitted]
 
 
-def tiles_seeing(stored: NDArray[np.uint8], layout: TileLayout) -> NDArray[np.bool_]:
-    """Whether each tile's halo box holds an observed voxel.
+def tiles_seeing(
+    stored: NDArray[np.uint8], layout: TileLayout, swept: NDArray[np.bool_] | None = None
+) -> NDArray[np.bool_]:
+    """Whether each tile's halo box holds an observed or swept voxel.
 
     A tile whose halo box holds none has no voxel within ``lattice.fill_voxels`` (at
-    most the tile's halo) of an observed one, so every voxel of it reads unknown and
-    its fit can be left out.
+    most the tile's halo) of an observed or swept one, so every voxel of it reads
+    unknown and its fit can be left out.
 
     Parameters
     ----------
     stored : ndarray of uint8, shape (n, 2, H)
         The leaves' stored counts over their halo boxes (x fastest).
     layout : TileLayout
+    swept : ndarray of bool, shape (n, H), optional
+        The leaves' swept voxels over their halo boxes (none where ``None``).
 
     Returns
     -------
     ndarray of bool, shape (n, tiles per leaf)
     """
     seen = (stored[:, 0] | stored[:, 1]) > 0
+    if swept is not None:
+        seen |= swept
     out: NDArray[np.bool_] = np.any(seen[:, layout.window], axis=2)
     return out
 
 
-def observed_near(stored: NDArray[np.uint8], grid: LeafGrid, fill: int) -> NDArray[np.bool_]:
-    """Whether each leaf voxel has an observed voxel within ``fill`` voxels along every axis.
+def observed_near(
+    stored: NDArray[np.uint8],
+    grid: LeafGrid,
+    fill: int,
+    swept: NDArray[np.bool_] | None = None,
+) -> NDArray[np.bool_]:
+    """Whether each leaf voxel has an observed or swept voxel within ``fill`` voxels.
+
+    Within ``fill`` voxels along every axis: a cube of edge ``2 fill + 1``.
 
     Parameters
     ----------
@@ -887,6 +985,8 @@ def observed_near(stored: NDArray[np.uint8], grid: LeafGrid, fill: int) -> NDArr
     fill : int
         At most the leaf's halo in voxels, so that the halo box holds every voxel that
         counts.
+    swept : ndarray of bool, shape (n, H), optional
+        The leaves' swept voxels over their halo boxes (none where ``None``).
 
     Returns
     -------
@@ -895,7 +995,10 @@ def observed_near(stored: NDArray[np.uint8], grid: LeafGrid, fill: int) -> NDArr
     """
     n, d, side, halo = stored.shape[0], grid.dim, grid.side, grid.halo_voxels
     box = side + 2 * halo
-    seen = ((stored[:, 0] | stored[:, 1]) > 0).astype(np.uint8).reshape((n,) + (box,) * d)
+    known = (stored[:, 0] | stored[:, 1]) > 0
+    if swept is not None:
+        known |= swept
+    seen = known.astype(np.uint8).reshape((n,) + (box,) * d)
     if fill > 0:
         seen = ndimage.maximum_filter(
             seen, size=(1,) + (2 * fill + 1,) * d, mode="constant", cval=0
@@ -926,8 +1029,11 @@ class LatticeEngine:
         """Scans → voxel observations → the leaves whose counts move."""
         with stage(stats, "training"):
             obs = observe(scans, self.config)
+            swept = swept_keys(scans, self.config)
         with stage(stats, "assign"):
-            return gather_observations(obs, self.grid, self.config, lookup, fresh=fresh)
+            return gather_observations(
+                obs, self.grid, self.config, lookup, fresh=fresh, swept=swept
+            )
 
     def fit(
         self,
@@ -953,28 +1059,35 @@ class LatticeEngine:
     def record(self, evidence: object, index: IntArray) -> bytes:
         """The compact record (:func:`octolgp.engines.lattice_record.encode_lattice`)."""
         ev = lattice_evidence_of(evidence)
-        return encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, self.grid)
+        return encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, self.grid, ev.swept)
 
     def records(self, evidence: Sequence[object], indices: IntArray) -> list[bytes]:
         """:meth:`record` of many leaves at once (the same bytes)."""
         evs = [lattice_evidence_of(ev) for ev in evidence]
         counts = [ev.counts for ev in evs]
         keys, hits = [ev.hit_keys for ev in evs], [ev.hits for ev in evs]
-        return encode_lattice_many(counts, keys, hits, indices, self.grid)
+        swept = [ev.swept for ev in evs]
+        return encode_lattice_many(counts, keys, hits, indices, self.grid, swept)
 
     def from_record(self, blob: bytes, index: IntArray) -> LatticeEvidence:
         """Inverse of :meth:`record`."""
-        return LatticeEvidence(*decode_lattice(blob, index, self.grid))
+        return LatticeEvidence(*decode_lattice_swept(blob, index, self.grid))
 
     def encode(self, evidence: object) -> bytes:
-        """Sizes, then the counts (uint8), the kept returns' keys and positions."""
+        """Sizes, the counts (uint8), the kept returns' keys and positions, any swept bitmap.
+
+        The swept voxels' bitmap (``np.packbits``, little bit order) ends the bytes
+        where a voxel is swept.
+        """
         ev = lattice_evidence_of(evidence)
         head = _SIZES.pack(ev.counts.shape[1], ev.hit_keys.size)
-        parts = (
+        parts = [
             np.ascontiguousarray(ev.counts, dtype=np.uint8),
             ev.hit_keys.astype("<i8"),
             ev.hits.astype("<f8"),
-        )
+        ]
+        if ev.swept.any():
+            parts.append(np.packbits(ev.swept, bitorder="little"))
         return head + b"".join(p.tobytes() for p in parts)
 
     def decode(self, blob: bytes, dim: int) -> LatticeEvidence:
@@ -985,5 +1098,11 @@ class LatticeEngine:
         if min(n_halo, r) < 0:
             raise OctolgpError("lattice evidence has a bad header")
         specs = [(2 * n_halo, "u1"), (r, "<i8"), (r * dim, "<f8")]
+        n_bits = (n_halo + 7) // 8
+        swept = _NONE_SWEPT
+        if n_halo and len(blob) == _SIZES.size + 2 * n_halo + 8 * r * (1 + dim) + n_bits:
+            bits = np.frombuffer(blob, np.uint8, n_bits, len(blob) - n_bits)
+            swept = np.unpackbits(bits, count=n_halo, bitorder="little").astype(bool)
+            blob = blob[: len(blob) - n_bits]
         counts, hit_keys, hits = read_arrays(blob, _SIZES.size, specs)
-        return LatticeEvidence(counts.reshape(2, n_halo), hit_keys, hits.reshape(r, dim))
+        return LatticeEvidence(counts.reshape(2, n_halo), hit_keys, hits.reshape(r, dim), swept)

@@ -13,7 +13,9 @@ the map file compresses it:
   lattice leaf keeps them (one return per voxel with an occupied count, keys ascending);
 - each return's cell inside its voxel, :data:`~octolgp.geometry.keys.RETURN_STEPS` per
   axis (uint16), one axis after the other; or, with flag bit 1 (returns of a leaf made
-  before returns were kept at cells, from an older map file), their positions (float64).
+  before returns were kept at cells, from an older map file), their positions (float64);
+- with flag bit 2, a bitmap of the ``H`` halo-box voxels swept between beams
+  (``np.packbits``, little bit order; records without it have none swept).
 
 Kept returns are placed at their cells' centres when they are observed
 (:func:`octolgp.geometry.keys.step_points`), so the record is exact: a leaf read back
@@ -34,6 +36,7 @@ from octolgp.training import IntArray
 _HEAD = struct.Struct("<IIB")
 _LISTED = 1  # flag: the returns' voxels are listed
 _EXACT = 2  # flag: the returns' positions are stored as float64
+_SWEPT = 4  # flag: a bitmap of the swept voxels ends the record
 
 
 def _box_origin(index: IntArray, grid: LeafGrid) -> IntArray:
@@ -43,7 +46,12 @@ def _box_origin(index: IntArray, grid: LeafGrid) -> IntArray:
 
 
 def encode_lattice(
-    counts: np.ndarray, hit_keys: IntArray, hits: np.ndarray, index: IntArray, grid: LeafGrid
+    counts: np.ndarray,
+    hit_keys: IntArray,
+    hits: np.ndarray,
+    index: IntArray,
+    grid: LeafGrid,
+    swept: np.ndarray | None = None,
 ) -> bytes:
     """The compact record of a lattice leaf's evidence (see the module's docstring).
 
@@ -58,6 +66,8 @@ def encode_lattice(
     index : ndarray of int64, shape (d,)
         The leaf's index.
     grid : LeafGrid
+    swept : ndarray of bool, shape (H,) or (0,), optional
+        The swept voxels (none where ``None`` or empty).
     """
     d = grid.dim
     n_halo = counts.shape[1]
@@ -70,8 +80,10 @@ def encode_lattice(
     keys = unpack_keys(hit_keys, d)
     steps = return_steps(hits, keys, grid.resolution, grid.tree_depth)
     exact = not np.array_equal(step_points(steps, keys, grid.resolution, grid.tree_depth), hits)
+    swept_bits = _swept_bits(swept, n_halo)
+    flags = (_LISTED if listed else 0) | (_EXACT if exact else 0) | (_SWEPT if swept_bits else 0)
     parts = [
-        _HEAD.pack(n_halo, hit_keys.size, (_LISTED if listed else 0) | (_EXACT if exact else 0)),
+        _HEAD.pack(n_halo, hit_keys.size, flags),
         np.packbits(seen, bitorder="little").tobytes(),
         counts[0, seen].astype(np.uint8).tobytes(),
         counts[1, seen].astype(np.uint8).tobytes(),
@@ -82,7 +94,17 @@ def encode_lattice(
         parts.append(np.asarray(hits, dtype="<f8").tobytes())
     else:
         parts.append(np.ascontiguousarray(steps.T).astype("<u2").tobytes())
+    parts.append(swept_bits)
     return b"".join(parts)
+
+
+def _swept_bits(swept: np.ndarray | None, n_halo: int) -> bytes:
+    """The bitmap of the swept voxels, or nothing where none is swept."""
+    if swept is None or not swept.size or not swept.any():
+        return b""
+    if swept.shape != (n_halo,):
+        raise ValueError(f"swept voxels have shape {swept.shape}, expected ({n_halo},)")
+    return np.packbits(swept, bitorder="little").tobytes()
 
 
 def decode_lattice(
@@ -95,12 +117,28 @@ def decode_lattice(
     OctolgpError
         On a truncated or inconsistent record.
     """
+    counts, hit_keys, hits, _ = decode_lattice_swept(blob, index, grid)
+    return counts, hit_keys, hits
+
+
+def decode_lattice_swept(
+    blob: bytes, index: IntArray, grid: LeafGrid
+) -> tuple[np.ndarray, IntArray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`encode_lattice`: ``counts``, ``hit_keys``, ``hits`` and ``swept``.
+
+    ``swept`` is empty (shape (0,)) where the record has none.
+
+    Raises
+    ------
+    OctolgpError
+        On a truncated or inconsistent record.
+    """
     d = grid.dim
     if len(blob) < _HEAD.size:
         raise OctolgpError("lattice evidence is truncated")
     n_halo, r, flags = _HEAD.unpack_from(blob)
     box = grid.side + 2 * grid.halo_voxels
-    if n_halo not in (0, box**d) or flags & ~(_LISTED | _EXACT):
+    if n_halo not in (0, box**d) or flags & ~(_LISTED | _EXACT | _SWEPT):
         raise OctolgpError("lattice evidence has a bad header")
     at = _HEAD.size
     n_bits = (n_halo + 7) // 8
@@ -111,7 +149,8 @@ def decode_lattice(
     at += n_bits
     m = int(seen.sum())
     listed, exact = bool(flags & _LISTED), bool(flags & _EXACT)
-    need = 2 * m + (4 * r if listed else 0) + (8 if exact else 2) * r * d
+    n_swept = n_bits if flags & _SWEPT else 0
+    need = 2 * m + (4 * r if listed else 0) + (8 if exact else 2) * r * d + n_swept
     if len(blob) != at + need:
         raise OctolgpError("lattice evidence has the wrong length")
     counts = np.zeros((2, n_halo), dtype=np.uint8)
@@ -132,7 +171,11 @@ def decode_lattice(
     else:
         steps = np.frombuffer(blob, "<u2", r * d, at).reshape(d, r).T
         hits = step_points(steps, keys, grid.resolution, grid.tree_depth)
-    return counts, pack_keys(keys), hits
+    swept = np.zeros(0, dtype=bool)
+    if n_swept:
+        bits = np.frombuffer(blob, np.uint8, n_swept, len(blob) - n_swept)
+        swept = np.unpackbits(bits, count=n_halo, bitorder="little").astype(bool)
+    return counts, pack_keys(keys), hits, swept
 
 
 def encode_lattice_many(
@@ -141,6 +184,7 @@ def encode_lattice_many(
     hits: list[np.ndarray],
     indices: IntArray,
     grid: LeafGrid,
+    swept: list[np.ndarray] | None = None,
 ) -> list[bytes]:
     """:func:`encode_lattice` of many leaves at once (the same bytes, leaf by leaf).
 
@@ -154,11 +198,22 @@ def encode_lattice_many(
     indices : ndarray of int64, shape (L, d)
         The leaves' indices.
     grid : LeafGrid
+    swept : list of ndarray, optional
+        Per leaf, its swept voxels (none where ``None``).
     """
     d = grid.dim
     box = grid.side + 2 * grid.halo_voxels
     n_halo = box**d
     out: list[bytes | None] = [None] * len(counts)
+    sweeps = [] if swept is None else [j for j, s in enumerate(swept) if s.size and s.any()]
+    if swept is not None and sweeps:  # the few leaves with swept voxels one by one
+        rest = sorted(set(range(len(counts))) - set(sweeps))
+        pick = [counts[j] for j in rest], [hit_keys[j] for j in rest], [hits[j] for j in rest]
+        for j, blob in zip(rest, encode_lattice_many(*pick, indices[rest], grid), strict=True):
+            out[j] = blob
+        for j in sweeps:
+            out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid, swept[j])
+        return [b for b in out if b is not None]
     whole = [j for j, c in enumerate(counts) if c.shape == (2, n_halo)]
     for j in sorted(set(range(len(counts))) - set(whole)):  # unsized leaves, one by one
         out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid)
