@@ -568,3 +568,24 @@ def test_the_room_mesh_example_writes_a_mesh(tmp_path: Path) -> None:
     ).stdout
     assert "triangles" in run
     assert sum(line.startswith("f ") for line in out.read_text().splitlines()) > 1000
+
+
+def test_distance_kept_between_inserts_matches_a_fresh_read() -> None:
+    """The occupied centres kept between reads follow the inserts: windows and whole map."""
+    from octolgp.mapping.distance import occupied_distance
+
+    data = simulate_paper2d(1, noise=False, n_poses=10, n_beams=90)
+    m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP2))
+    rng = np.random.default_rng(3)
+    for scan in data.scans:  # a planner: a window read and a whole-map read after each insert
+        m.insert_scan(scan)
+        X = scan.origin + rng.uniform(-1.5, 1.5, (200, 2))
+        for cap in (1.0, None):
+            got = m.distance(X, max_distance=cap)
+            again = m.distance(X, max_distance=cap)  # the kept tree
+            with m._reading() as fresh:
+                want = occupied_distance(fresh, X, 0.5, np.inf if cap is None else cap)
+            np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(again, want)
+    want = brute_distance(m, X, 0.5)
+    np.testing.assert_allclose(m.distance(X), want, rtol=0, atol=1e-9)
