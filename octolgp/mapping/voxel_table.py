@@ -12,11 +12,12 @@ reads it saves are worth that.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
-from octolgp.geometry.keys import pack_keys, unpack_keys
+from octolgp.geometry.keys import pack_keys
 from octolgp.mapping.coarse import leaves_in_box
 from octolgp.mapping.field import ReadableMap, all_columns
 from octolgp.mapping.grid import LeafGrid
@@ -98,32 +99,49 @@ class VoxelTable:
 
 def voxel_table(m: ReadableMap, lo: FloatArray, hi: FloatArray) -> VoxelTable:
     """The values of every voxel of the leaves overlapping the box ``lo, hi`` (metres)."""
-    keys: list[IntArray] = [np.zeros(0, dtype=np.int64)]
+    dim, grid = m.config.dim, m.grid
+    index: list[IntArray] = []
     values: dict[str, list[FloatArray]] = {f: [np.zeros(0)] for f in ("mean", "var", "prob")}
     wanted, size = leaves_in_box(m, lo, hi, m.config.tree_depth), m.store.batch
+    per_leaf = grid.voxels_per_leaf
     for start in range(0, len(wanted), size):  # evicted leaves read a batch at a time
         for leaf in m.store.peek_many(wanted[start : start + size]):  # one per leaf
             if leaf is None or leaf.prob.size == 0:
                 continue
-            centres = m.grid.voxel_centres(leaf.index)
-            keys.append(m.grid.voxel_keys(centres))
-            for name, parts in values.items():  # mean, var, prob
-                v = np.broadcast_to(getattr(leaf, name), (centres.shape[0],))
-                parts.append(v.astype(np.float64))
-    flat = np.concatenate(keys)
-    order = np.argsort(flat, kind="stable")
-    flat = flat[order]
-    cols = {name: np.concatenate(parts)[order] for name, parts in values.items()}
-    dim = m.config.dim
+            index.append(leaf.index)
+            for name, parts in values.items():  # mean, var, prob (one value: pruned)
+                parts.append(np.broadcast_to(getattr(leaf, name), (per_leaf,)))
     low = np.zeros(dim, dtype=np.int64)
+    if not index:
+        empty = np.zeros(0)
+        return VoxelTable(grid, np.zeros(0, dtype=np.int64), empty, empty, empty, low, None)
+    leaves = np.array(index, dtype=np.int64).reshape(-1, dim)
+    # per-axis voxel keys: the leaf's first key plus the voxel's place in it (x fastest)
+    per_axis = (leaves[:, None, :] * grid.side + _local_keys(dim, grid.side)).reshape(-1, dim)
+    low, high = leaves.min(axis=0) * grid.side, (leaves.max(axis=0) + 1) * grid.side - 1
     slots = None
-    if flat.size:
-        per_axis = unpack_keys(flat, dim)
-        low, high = per_axis.min(axis=0), per_axis.max(axis=0)
-        if flat.size >= DENSE_FILL * float(np.prod(high - low + 1)):
-            slots = np.full(tuple(high - low + 1), -1, dtype=np.int64)
-            slots[tuple((per_axis - low).T)] = np.arange(flat.size)
-    return VoxelTable(m.grid, flat, cols["mean"], cols["var"], cols["prob"], low, slots)
+    if per_axis.shape[0] >= DENSE_FILL * float(np.prod(high - low + 1)):
+        # a dense index: its cells in reversed axis order are the packed keys ascending
+        slots = np.full(tuple(high - low + 1), -1, dtype=np.int64)
+        slots[tuple((per_axis - low).T)] = np.arange(per_axis.shape[0])
+        ascending = slots.transpose().ravel()
+        order = ascending[ascending >= 0]
+        slots[tuple((per_axis[order] - low).T)] = np.arange(order.size)
+    else:
+        order = np.argsort(pack_keys(per_axis))  # voxel keys are unique
+    flat = pack_keys(per_axis[order])
+    cols = {name: np.concatenate(parts).astype(np.float64)[order] for name, parts in values.items()}
+    return VoxelTable(grid, flat, cols["mean"], cols["var"], cols["prob"], low, slots)
+
+
+@functools.lru_cache(maxsize=8)
+def _local_keys(dim: int, side: int) -> IntArray:
+    """Per-axis key offsets ``(side**dim, dim)`` of a leaf's voxels, in flat order (x fastest)."""
+    steps = np.arange(side, dtype=np.int64)
+    grids = np.meshgrid(*([steps] * dim), indexing="ij")
+    offsets = np.stack([g.ravel(order="F") for g in grids], axis=1)
+    offsets.setflags(write=False)
+    return offsets
 
 
 def table_pays(m: ReadableMap, lo: FloatArray, hi: FloatArray, lookups: float) -> bool:
