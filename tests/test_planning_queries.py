@@ -218,9 +218,18 @@ def brute_distance(m: OnlineMap, X: np.ndarray, threshold: float) -> np.ndarray:
     return out
 
 
+@pytest.mark.parametrize("search", ["shells", "tree", "few shells, then the tree"])
 @pytest.mark.parametrize("threshold", [0.5, 0.8])
-def test_distance_matches_brute_force(any_map: OnlineMap, threshold: float) -> None:
+def test_distance_matches_brute_force(
+    any_map: OnlineMap, threshold: float, search: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from octolgp.mapping import distance
+
+    monkeypatch.setattr(distance, "COMPILED", search != "tree")
+    if search.startswith("few"):
+        monkeypatch.setattr(distance, "SHELLS", {2: 2, 3: 1})
     m = any_map
+    m._occupied = None  # nothing kept from other tests' reads
     rng = np.random.default_rng(7)
     centres, _ = m.voxels()
     lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
@@ -231,7 +240,9 @@ def test_distance_matches_brute_force(any_map: OnlineMap, threshold: float) -> N
     assert (got == 0).any()
     assert (got > 1.0).any()
     capped = m.distance(X, threshold, max_distance=0.7)
-    np.testing.assert_array_equal(capped, np.where(want <= 0.7, got, np.inf))
+    near, far = want <= 0.7 - 1e-9, want > 0.7 + 1e-9  # rounding aside
+    np.testing.assert_allclose(capped[near], got[near], rtol=0, atol=1e-9)
+    assert np.isinf(capped[far]).all()
 
 
 def test_distance_of_an_empty_map_is_inf() -> None:

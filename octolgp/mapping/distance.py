@@ -12,6 +12,12 @@ neighbours, rounds of ``4 k``, until it does. With a finite ``max_distance`` the
 tree is asked only for centres within it plus the half-diagonal (no cube farther
 can be within it), so points far from every obstacle settle at once.
 
+Where numba is installed (:data:`COMPILED`), points near the occupied voxels are
+answered first by a compiled search of the shells of voxels around each point over a
+dense grid of the occupied ones (:mod:`octolgp.mapping.distance_kernel`), exact as
+well; the points it leaves (farther than :data:`SHELLS` voxels from any, and within
+``max_distance``) go to the KD-tree, built only then.
+
 Against the true geometry the occupied cubes cover each observed surface point
 with a cube at most one voxel across, so the distance is within a voxel diagonal
 below the true distance to observed surfaces (measured in BENCHMARKS.md), and 0
@@ -23,14 +29,15 @@ and is recomputed only when the leaf holds another one (a fit gives a leaf new
 arrays, never writes into old ones), so a read after an insert recomputes the
 leaves the insert changed, not the map. A read with a finite ``max_distance`` takes
 only the leaves overlapping the queries' bounding box grown by it; the tree of the
-last read is kept and used again while its leaves and their entries are the same
-(repeated queries between two inserts build no tree).
+last read (and the grid) is kept and used again while its leaves and their entries are
+the same (repeated queries between two inserts build neither again).
 
 Every function here only reads the map: the index is a cache of its values.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import math
 import weakref
 from dataclasses import dataclass, field
@@ -44,8 +51,10 @@ from octolgp.mapping.coarse import leaves_in_box
 from octolgp.mapping.field import QUERY_CHUNK, ReadableMap
 from octolgp.mapping.store import Leaf
 from octolgp.scan import FloatArray
+from octolgp.training import IntArray
 
 __all__ = [
+    "Occupied",
     "OccupiedIndex",
     "check_max_distance",
     "cube_distance",
@@ -55,6 +64,15 @@ __all__ = [
 
 FIRST_NEIGHBOURS = 8
 """Centres a point's first KD-tree query asks for."""
+
+COMPILED = importlib.util.find_spec("numba") is not None
+"""Whether near points are answered by the compiled search of voxel shells."""
+
+SHELLS = {1: 64, 2: 24, 3: 8}
+"""Most shells of voxels searched around a point, by dimension, before the KD-tree."""
+
+GRID_CELLS = 1 << 26
+"""Most cells of the dense grid of occupied voxels (bytes); a larger box: the KD-tree only."""
 
 THRESHOLDS_KEPT = 4
 """Thresholds whose occupied centres :class:`OccupiedIndex` keeps (the latest used)."""
@@ -121,13 +139,60 @@ class _LeafEntry:
 
 
 @dataclass(slots=True)
+class Occupied:
+    """The occupied voxels of some leaves, and the search structures over them.
+
+    Each structure is built when a read first needs it, and kept with the voxels
+    while their leaves stay the same.
+
+    Attributes
+    ----------
+    cubes : ndarray of shape (n, d)
+        Occupied voxel centres, metres.
+    resolution : float
+    origin : float
+        Coordinate of voxel key 0, metres.
+    """
+
+    cubes: FloatArray
+    resolution: float
+    origin: float
+    _tree: cKDTree | None = None
+    _grid: tuple[np.ndarray, IntArray] | None = None
+
+    @property
+    def tree(self) -> cKDTree:
+        """A KD-tree over :attr:`cubes` (at least one)."""
+        if self._tree is None:
+            self._tree = cKDTree(self.cubes)
+        return self._tree
+
+    @property
+    def grid(self) -> tuple[np.ndarray, IntArray] | None:
+        """The occupied voxels as a dense bool grid over their bounding box, and its first key.
+
+        ``None`` when that box holds more than :data:`GRID_CELLS` cells.
+        """
+        if self._grid is None:
+            keys = np.floor((self.cubes - self.origin) / self.resolution).astype(np.int64)
+            low = keys.min(axis=0)
+            shape = keys.max(axis=0) - low + 1
+            if float(np.prod(shape.astype(np.float64))) > GRID_CELLS:
+                self._grid = (np.zeros((0,) * self.cubes.shape[1], dtype=bool), low)
+            else:
+                occupied = np.zeros(tuple(shape), dtype=bool)
+                occupied[tuple((keys - low).T)] = True
+                self._grid = (occupied, low)
+        return None if self._grid[0].size == 0 else self._grid
+
+
+@dataclass(slots=True)
 class _Tree:
-    """A KD-tree over the entries of some leaves, kept while they stay the same."""
+    """The occupied voxels of some leaves' entries, kept while they stay the same."""
 
     keys: list[int]
     entries: list[_LeafEntry]
-    cubes: FloatArray
-    tree: cKDTree | None
+    occupied: Occupied | None
 
 
 @dataclass
@@ -153,13 +218,8 @@ class OccupiedIndex:
         self._entries[threshold] = entries  # the latest used last
         return entries
 
-    def tree(
-        self, m: ReadableMap, keys: list[int], threshold: float
-    ) -> tuple[FloatArray, cKDTree | None]:
-        """Occupied centres ``(n, d)`` of the leaves ``keys`` (packed) and a tree over them.
-
-        ``None`` for the tree when there are none.
-        """
+    def occupied(self, m: ReadableMap, keys: list[int], threshold: float) -> Occupied | None:
+        """The occupied voxels of the leaves ``keys`` (packed); ``None`` where there are none."""
         entries = self._at(threshold)
         if len(entries) > len(m.store):  # leaves a correction removed: their entries go
             for key in [k for k in entries if k not in m.store]:  # one per removed leaf
@@ -177,12 +237,15 @@ class OccupiedIndex:
                 current.append(entry)
         kept = self._trees.get(threshold)
         if kept is not None and kept.keys == keys and _same(kept.entries, current):
-            return kept.cubes, kept.tree
+            return kept.occupied
         parts = [e.centres for e in current if e.centres.shape[0]]
-        cubes = np.concatenate(parts) if parts else np.zeros((0, m.config.dim))
-        tree = cKDTree(cubes) if cubes.shape[0] else None
-        self._trees[threshold] = _Tree(keys, current, cubes, tree)
-        return cubes, tree
+        found = None
+        if parts:
+            res = m.config.resolution
+            origin = -float(1 << (m.config.tree_depth - 1)) * res  # of voxel key 0
+            found = Occupied(np.concatenate(parts), res, origin)
+        self._trees[threshold] = _Tree(keys, current, found)
+        return found
 
 
 def _same(a: list[_LeafEntry], b: list[_LeafEntry]) -> bool:
@@ -241,12 +304,20 @@ def occupied_distance(
         keys = leaves_in_box(m, lo, hi, m.config.tree_depth)
     else:
         keys = list(m.store)
-    cubes, tree = (OccupiedIndex() if index is None else index).tree(m, keys, threshold)
-    if tree is None:
+    found = (OccupiedIndex() if index is None else index).occupied(m, keys, threshold)
+    if found is None:
         return out
-    for first in range(0, X.shape[0], QUERY_CHUNK):  # bounded temporaries, chunk by chunk
-        at = slice(first, first + QUERY_CHUNK)
-        out[at] = nearest_cube(tree, cubes, X[at], 0.5 * res, max_distance)
+    todo = np.arange(X.shape[0])
+    grid = found.grid if COMPILED else None
+    if grid is not None:  # near points by shells of voxels, the rest by the tree
+        from octolgp.mapping.distance_kernel import ring_search  # imports numba
+
+        shells = SHELLS[m.config.dim]
+        out, settled = ring_search(X, grid[0], grid[1], res, found.origin, max_distance, shells)
+        todo = np.flatnonzero(~settled)
+    for first in range(0, todo.size, QUERY_CHUNK):  # bounded temporaries, chunk by chunk
+        at = todo[first : first + QUERY_CHUNK]
+        out[at] = nearest_cube(found.tree, found.cubes, X[at], 0.5 * res, max_distance)
     return np.where(out <= max_distance, out, np.inf)
 
 
