@@ -68,7 +68,7 @@ FIRST_NEIGHBOURS = 8
 COMPILED = importlib.util.find_spec("numba") is not None
 """Whether near points are answered by the compiled search of voxel shells."""
 
-SHELLS = {1: 64, 2: 24, 3: 8}
+SHELLS = {1: 32, 2: 10, 3: 3}
 """Most shells of voxels searched around a point, by dimension, before the KD-tree."""
 
 GRID_CELLS = 1 << 26

@@ -54,13 +54,16 @@ _inline: Callable[[Any], Any] = njit(cache=True, nogil=True, inline="always")
 def _row(
     keys: IntArray,
     dense: bool,
-    slots: IntArray,
     shape: IntArray,
     low: IntArray,
     packed: IntArray,
     limit: int,
 ) -> int:  # pragma: no cover - compiled; tested through the compiled form
-    """Table row of the voxel with per-axis keys ``keys`` (-1: none, or out of range)."""
+    """Row of the voxel with per-axis keys ``keys`` in the values (-1: out of range, or none).
+
+    Dense: the cell of the box (whose values may be NaN); else the row of the sorted
+    packed keys holding it.
+    """
     d = keys.shape[0]
     for a in range(d):
         if keys[a] < 0 or keys[a] >= limit:
@@ -72,7 +75,7 @@ def _row(
             if local < 0 or local >= shape[a]:
                 return -1
             flat = flat * shape[a] + local
-        return int(slots[flat])
+        return flat
     want = 0
     for a in range(d):
         want |= keys[a] << (16 * a)
@@ -96,7 +99,6 @@ def _own_row(
     origin: float,
     keys: IntArray,
     dense: bool,
-    slots: IntArray,
     shape: IntArray,
     low: IntArray,
     packed: IntArray,
@@ -108,31 +110,29 @@ def _own_row(
         if cell < -half or cell >= half:
             return -1
         keys[a] = math.floor((x[a] - origin) / res)
-    row: int = _row(keys, dense, slots, shape, low, packed, limit)
+    row: int = _row(keys, dense, shape, low, packed, limit)
     return row
 
 
 @_inline
 def _known(
     x: FloatArray,
-    table: tuple[bool, IntArray, IntArray, IntArray, IntArray, FloatArray, FloatArray, FloatArray],
+    table: tuple[bool, IntArray, IntArray, IntArray, FloatArray],
     field: tuple[bool, float, float, float, float, float],
     grid: tuple[float, float, float, int, int],
     keys: IntArray,
 ) -> bool:  # pragma: no cover - compiled; tested through the compiled form
     """Whether the voxel holding ``x`` holds a value."""
-    dense, slots, shape, low, packed, mean, _, prob = table
+    dense, shape, low, packed, values = table
     res, half, origin, limit, _ = grid
-    row = _own_row(x, res, half, origin, keys, dense, slots, shape, low, packed, limit)
-    if row < 0:
-        return False
-    return not math.isnan(mean[row] if field[0] else prob[row])
+    row = _own_row(x, res, half, origin, keys, dense, shape, low, packed, limit)
+    return row >= 0 and not math.isnan(values[row, 0])
 
 
 @_inline
 def _event(
     x: FloatArray,
-    table: tuple[bool, IntArray, IntArray, IntArray, IntArray, FloatArray, FloatArray, FloatArray],
+    table: tuple[bool, IntArray, IntArray, IntArray, FloatArray],
     field: tuple[bool, float, float, float, float, float],
     grid: tuple[float, float, float, int, int],
     stop_unknown: bool,
@@ -150,16 +150,14 @@ def _event(
     P >= threshold where the PLSC argument reaches it); ``offsets``: the dense index's
     offsets of a cell's corners from its lower corner.
     """
-    dense, slots, shape, low, packed, mean, var, prob = table
+    dense, shape, low, packed, values = table
     interp, prior, noise, alpha, beta, z_threshold = field
     res, half, origin, limit, key_half = grid
-    row = _own_row(x, res, half, origin, keys, dense, slots, shape, low, packed, limit)
-    if not interp:
-        if row < 0 or math.isnan(prob[row]):
-            return stop_unknown, False
-        return prob[row] >= z_threshold, True
-    if row < 0 or math.isnan(mean[row]):
+    row = _own_row(x, res, half, origin, keys, dense, shape, low, packed, limit)
+    if row < 0 or math.isnan(values[row, 0]):
         return stop_unknown, False
+    if not interp:
+        return values[row, 0] >= z_threshold, True
     d = x.shape[0]
     same = True
     for a in range(d):  # the cell's lower corner and the point's place in the cell
@@ -179,14 +177,14 @@ def _event(
             flat = flat * shape[a] + local
         for c in range(1 << d):  # the first axis slowest
             if inside:
-                r = slots[flat + offsets[c]]
+                r = flat + offsets[c]
             else:
                 for a in range(d):
                     keys[a] = lower[a] + ((c >> (d - 1 - a)) & 1)
-                r = _row(keys, dense, slots, shape, low, packed, limit)
+                r = _row(keys, dense, shape, low, packed, limit)
             corner_mean[c], corner_var[c] = 0.0, prior
-            if r >= 0 and not math.isnan(mean[r]):
-                corner_mean[c], corner_var[c] = mean[r], var[r]
+            if r >= 0 and not math.isnan(values[r, 0]):
+                corner_mean[c], corner_var[c] = values[r, 0], values[r, 1]
     m_sum = 0.0
     v_sum = 0.0
     for c in range(1 << d):  # the corners' weights, in the same order
@@ -205,7 +203,7 @@ def _cast(
     origins: FloatArray,
     directions: FloatArray,
     max_range: FloatArray,
-    table: tuple[bool, IntArray, IntArray, IntArray, IntArray, FloatArray, FloatArray, FloatArray],
+    table: tuple[bool, IntArray, IntArray, IntArray, FloatArray],
     field: tuple[bool, float, float, float, float, float],
     grid: tuple[float, float, float, int, int],
     mode: int,
@@ -216,13 +214,13 @@ def _cast(
     """Fill ``out`` (n,) with each ray's distance (see the module docstring)."""
     n, d = origins.shape
     stop_unknown = mode != 1
-    res = grid[0]
+    dense, shape, low, packed, values = table
+    res, half, _, limit, key_half = grid
     keys = np.empty(d, dtype=np.int64)
     frac = np.empty(d)
     lower = np.empty(d, dtype=np.int64)
-    shape = table[2]
     offsets = np.zeros(1 << d, dtype=np.int64)
-    if table[0]:  # the dense index's offsets of a cell's corners from its lower corner
+    if dense:  # the dense index's offsets of a cell's corners from its lower corner
         for c in range(1 << d):
             stride = 1
             for a in range(d - 1, -1, -1):  # C order: the last axis varies fastest
@@ -261,6 +259,8 @@ def _cast(
                 plane[a] = math.floor(o[a] / res) + 1.0
             elif u[a] < 0:
                 plane[a] = math.ceil(o[a] / res) - 1.0
+            else:  # never crossed: the origin's voxel along this axis
+                plane[a] = math.floor(o[a] / res)
             t_next[a] = (plane[a] * res - o[a]) / u[a] if u[a] != 0 else np.inf
         k = 1
         before = 0.0
@@ -274,12 +274,15 @@ def _cast(
                     for a in range(d):
                         tn = min(tn, t_next[a])
                     end = min(tn, s)
-                    if end > cur:
-                        mid = 0.5 * (cur + end)
+                    if end > cur:  # the piece's voxel: from the faces, no division
+                        inside = True
                         for a in range(d):
-                            x[a] = o[a] + mid * u[a]
-                        if not _known(x, table, field, grid, keys):
-                            first = mid
+                            vox = int(plane[a]) - (1 if u[a] > 0 else 0)
+                            inside = inside and -half <= vox < half
+                            keys[a] = vox + key_half
+                        row = _row(keys, dense, shape, low, packed, limit) if inside else -1
+                        if row < 0 or math.isnan(values[row, 0]):
+                            first = 0.5 * (cur + end)
                             break
                     if tn >= s:
                         break
@@ -340,11 +343,53 @@ def _cast(
         out[r] = hi if known or mode != 0 else np.nan
 
 
+def table_values(
+    slots: IntArray | None,
+    low: IntArray,
+    keys: IntArray,
+    first: FloatArray,
+    second: FloatArray,
+) -> tuple[bool, IntArray, IntArray, IntArray, FloatArray]:
+    """The kernel's table: each voxel's two values side by side, densely where there is a box.
+
+    Parameters
+    ----------
+    slots : ndarray of int64 or None
+        A :class:`~octolgp.mapping.voxel_table.VoxelTable`'s dense index over its
+        box (``None``: none).
+    low : ndarray of int64, shape (d,)
+        The box's first per-axis key.
+    keys : ndarray of int64, shape (v,)
+        Packed voxel keys, ascending.
+    first, second : ndarray of shape (v,)
+        The values read: the latent mean (NaN where none) and variance, or the
+        stored P twice.
+
+    Returns
+    -------
+    tuple
+        ``(dense, shape, low, keys, values)``: with a box, ``values`` holds a row
+        per cell of it in C order (NaN where no voxel); without, a row per key.
+        float32 where the values are (a leaf's are), else float64.
+    """
+    pairs: np.ndarray = np.stack([first, second], axis=1)
+    narrow = pairs.astype(np.float32)
+    if np.array_equal(narrow, pairs, equal_nan=True):  # a leaf's float32 values, exactly
+        pairs = narrow
+    if slots is None:
+        return False, np.zeros(low.shape[0], dtype=np.int64), low, keys, pairs
+    flat = slots.reshape(-1)
+    values = np.full((flat.size, 2), np.nan, dtype=pairs.dtype)
+    present = flat >= 0
+    values[present] = pairs[flat[present]]
+    return True, np.array(slots.shape, dtype=np.int64), low, keys, values
+
+
 def cast(
     origins: FloatArray,
     directions: FloatArray,
     max_range: FloatArray,
-    table: tuple[bool, IntArray, IntArray, IntArray, IntArray, FloatArray, FloatArray, FloatArray],
+    table: tuple[bool, IntArray, IntArray, IntArray, FloatArray],
     field: tuple[bool, float, float, float, float, float],
     grid: tuple[float, float, float, int, int],
     mode: str,
@@ -360,10 +405,9 @@ def cast(
     max_range : ndarray of shape (n,)
         Metres (>= 0).
     table : tuple
-        ``(dense, slots, shape, low, keys, mean, var, prob)`` of a
+        ``(dense, shape, low, keys, values)``, from a
         :class:`~octolgp.mapping.voxel_table.VoxelTable` covering every voxel the
-        rays may read: the flattened dense index (or an empty one), its shape and
-        first key, the sorted packed keys and the values (float64).
+        rays may read (:func:`table_values`).
     field : tuple
         ``(interpolate, prior variance, noise variance, alpha, beta, threshold)``;
         ``interpolate`` false reads the stored P of each point's voxel; true

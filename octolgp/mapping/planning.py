@@ -132,15 +132,13 @@ def _compiled_cast(
     """:func:`raycast` by the compiled march (:mod:`octolgp.mapping.march_kernel`)."""
     from octolgp.mapping import march_kernel  # imports numba: on the first ray cast
 
-    dim, depth, res = m.config.dim, m.config.tree_depth, m.config.resolution
-    if table.slots is not None:
-        slots, shape = table.slots.reshape(-1), np.array(table.slots.shape, dtype=np.int64)
-    else:
-        slots, shape = np.zeros(0, dtype=np.int64), np.zeros(dim, dtype=np.int64)
-    c = np.ascontiguousarray
-    values = (c(table.mean, np.float64), c(table.var, np.float64), c(table.prob, np.float64))
-    tables = (table.slots is not None, c(slots), shape, c(table.low), c(table.keys), *values)
+    depth, res = m.config.tree_depth, m.config.resolution
     hp = m.hyperparameters
+    first = table.prob if hp is None else table.mean
+    c = np.ascontiguousarray
+    tables = march_kernel.table_values(
+        table.slots, c(table.low), c(table.keys), first, table.prob if hp is None else table.var
+    )
     if hp is None:  # the stored value of each point's voxel
         field = (False, 1.0, 0.0, 1.0, 0.0, threshold)
     else:
