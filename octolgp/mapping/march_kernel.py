@@ -41,7 +41,7 @@ from numba import njit
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
 
-__all__ = ["MODES", "cast"]
+__all__ = ["MODES", "cast", "keyed_table"]
 
 MODES = {"stop": 0, "free": 1, "occupied": 2}
 """The kernel's code of each unknown mode (:data:`octolgp.mapping.planning.UNKNOWN_MODES`)."""
@@ -343,24 +343,16 @@ def _cast(
         out[r] = hi if known or mode != 0 else np.nan
 
 
-def table_values(
-    slots: IntArray | None,
-    low: IntArray,
-    keys: IntArray,
-    first: FloatArray,
-    second: FloatArray,
-) -> tuple[bool, IntArray, IntArray, IntArray, FloatArray]:
-    """The kernel's table: each voxel's two values side by side, densely where there is a box.
+def keyed_table(
+    low: IntArray, keys: IntArray, first: FloatArray, second: FloatArray
+) -> tuple[bool, IntArray, IntArray, IntArray, np.ndarray]:
+    """The kernel's table by key: each voxel's two values side by side, a row per key.
 
     Parameters
     ----------
-    slots : ndarray of int64 or None
-        A :class:`~octolgp.mapping.voxel_table.VoxelTable`'s dense index over its
-        box (``None``: none).
     low : ndarray of int64, shape (d,)
-        The box's first per-axis key.
     keys : ndarray of int64, shape (v,)
-        Packed voxel keys, ascending.
+        Packed voxel keys, ascending (a :class:`~octolgp.mapping.voxel_table.VoxelTable`'s).
     first, second : ndarray of shape (v,)
         The values read: the latent mean (NaN where none) and variance, or the
         stored P twice.
@@ -368,21 +360,15 @@ def table_values(
     Returns
     -------
     tuple
-        ``(dense, shape, low, keys, values)``: with a box, ``values`` holds a row
-        per cell of it in C order (NaN where no voxel); without, a row per key.
-        float32 where the values are (a leaf's are), else float64.
+        ``(False, shape, low, keys, values)`` (``shape`` unused), ``values`` float32
+        where the values are exactly (a leaf's are), else float64.
     """
     pairs: np.ndarray = np.stack([first, second], axis=1)
     narrow = pairs.astype(np.float32)
     if np.array_equal(narrow, pairs, equal_nan=True):  # a leaf's float32 values, exactly
         pairs = narrow
-    if slots is None:
-        return False, np.zeros(low.shape[0], dtype=np.int64), low, keys, pairs
-    flat = slots.reshape(-1)
-    values = np.full((flat.size, 2), np.nan, dtype=pairs.dtype)
-    present = flat >= 0
-    values[present] = pairs[flat[present]]
-    return True, np.array(slots.shape, dtype=np.int64), low, keys, values
+    shape = np.zeros(low.shape[0], dtype=np.int64)
+    return False, shape, np.ascontiguousarray(low), np.ascontiguousarray(keys), pairs
 
 
 def cast(
@@ -405,9 +391,11 @@ def cast(
     max_range : ndarray of shape (n,)
         Metres (>= 0).
     table : tuple
-        ``(dense, shape, low, keys, values)``, from a
-        :class:`~octolgp.mapping.voxel_table.VoxelTable` covering every voxel the
-        rays may read (:func:`table_values`).
+        ``(dense, shape, low, keys, values)`` covering every voxel the rays may
+        read: dense, ``values`` holds a row per cell of the box of first key ``low``
+        and ``shape`` (:func:`~octolgp.mapping.voxel_table.dense_box`: C order, NaN
+        where no voxel); else a row per packed key of ``keys``
+        (:func:`keyed_table`).
     field : tuple
         ``(interpolate, prior variance, noise variance, alpha, beta, threshold)``;
         ``interpolate`` false reads the stored P of each point's voxel; true

@@ -34,7 +34,7 @@ from scipy.special import ndtri
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import addressable_range
 from octolgp.mapping.field import QUERY_CHUNK, ReadableMap, Reader, held_at, occupancy_field
-from octolgp.mapping.voxel_table import VoxelTable, table_pays, voxel_table
+from octolgp.mapping.voxel_table import dense_box, table_pays, voxel_table
 from octolgp.scan import FloatArray
 
 __all__ = ["MAX_BLOCK_STEPS", "UNKNOWN_MODES", "raycast", "segment_free"]
@@ -103,9 +103,10 @@ def raycast(
     out = np.full(origins.shape[0], np.inf)
     if origins.shape[0] == 0:
         return out
-    read = _reader(m, origins, directions, max_range, step)
-    if COMPILED and isinstance(read, VoxelTable):
-        return _compiled_cast(m, read, origins, directions, max_range, threshold, unknown, step)
+    box = _table_box(m, origins, directions, max_range, step)
+    if COMPILED and box is not None:
+        return _compiled_cast(m, box, origins, directions, max_range, threshold, unknown, step)
+    read = None if box is None else voxel_table(m, *box)
     for lo in range(0, origins.shape[0], RAY_CHUNK):  # bounded temporaries, chunk by chunk
         at = slice(lo, lo + RAY_CHUNK)
         rays = (origins[at], directions[at], max_range[at])
@@ -121,7 +122,7 @@ def _halvings(step: float, resolution: float) -> int:
 
 def _compiled_cast(
     m: ReadableMap,
-    table: VoxelTable,
+    box: tuple[FloatArray, FloatArray],
     origins: FloatArray,
     directions: FloatArray,
     max_range: FloatArray,
@@ -129,16 +130,26 @@ def _compiled_cast(
     unknown: str,
     step: float,
 ) -> FloatArray:
-    """:func:`raycast` by the compiled march (:mod:`octolgp.mapping.march_kernel`)."""
+    """:func:`raycast` by the compiled march (:mod:`octolgp.mapping.march_kernel`).
+
+    The voxels of the box are read into a dense array of their box where they fill
+    enough of it (:func:`~octolgp.mapping.voxel_table.dense_box`), else into a table
+    by key.
+    """
     from octolgp.mapping import march_kernel  # imports numba: on the first ray cast
 
     depth, res = m.config.tree_depth, m.config.resolution
     hp = m.hyperparameters
-    first = table.prob if hp is None else table.mean
-    c = np.ascontiguousarray
-    tables = march_kernel.table_values(
-        table.slots, c(table.low), c(table.keys), first, table.prob if hp is None else table.var
-    )
+    fields = ("prob", "prob") if hp is None else ("mean", "var")
+    dense = dense_box(m, *box, fields)
+    if dense is not None:
+        low, shape, values = dense
+        tables = (True, shape, low, np.zeros(0, dtype=np.int64), values)
+    else:
+        table = voxel_table(m, *box)
+        tables = march_kernel.keyed_table(
+            table.low, table.keys, getattr(table, fields[0]), getattr(table, fields[1])
+        )
     if hp is None:  # the stored value of each point's voxel
         field = (False, 1.0, 0.0, 1.0, 0.0, threshold)
     else:
@@ -205,14 +216,14 @@ def _march(
     return out
 
 
-def _reader(
+def _table_box(
     m: ReadableMap,
     origins: FloatArray,
     directions: FloatArray,
     max_range: FloatArray,
     step: float,
-) -> Reader | None:
-    """A table of the voxels the rays may read when it pays (else ``None``: the store)."""
+) -> tuple[FloatArray, FloatArray] | None:
+    """The box of the voxels the rays may read, where reading it at once pays (else ``None``)."""
     if origins.shape[0] == 0:
         return None
     res = m.config.resolution
@@ -224,7 +235,7 @@ def _reader(
     samples = float(np.sum(max_range)) / step
     if not table_pays(m, lo, hi, samples * corners):
         return None
-    return voxel_table(m, lo, hi)
+    return lo, hi
 
 
 def _along(origins: FloatArray, directions: FloatArray, s: FloatArray) -> FloatArray:

@@ -24,7 +24,7 @@ from octolgp.mapping.grid import LeafGrid
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
 
-__all__ = ["VoxelTable", "table_pays", "voxel_table"]
+__all__ = ["VoxelTable", "dense_box", "table_pays", "voxel_table"]
 
 LOOKUPS_PER_VOXEL = 4
 """Point reads that justify reading one voxel into a table (measured on the lidar room)."""
@@ -97,27 +97,68 @@ class VoxelTable:
         return self.at_keys(self.grid.voxel_index_keys(X), fields)
 
 
-def voxel_table(m: ReadableMap, lo: FloatArray, hi: FloatArray) -> VoxelTable:
-    """The values of every voxel of the leaves overlapping the box ``lo, hi`` (metres)."""
+def _read_box(
+    m: ReadableMap, lo: FloatArray, hi: FloatArray, fields: tuple[str, ...]
+) -> tuple[IntArray, IntArray, list[np.ndarray]]:
+    """The leaves overlapping a box: their indices ``(L, d)``, voxel keys, and values.
+
+    Returns the leaf indices, the per-axis keys ``(L V, d)`` of their voxels (leaf by
+    leaf, each in flat order) and, per field, the voxels' values in that order (the
+    leaves' dtype; one value broadcast for a pruned leaf).
+    """
     dim, grid = m.config.dim, m.grid
-    index: list[IntArray] = []
-    values: dict[str, list[FloatArray]] = {f: [np.zeros(0)] for f in ("mean", "var", "prob")}
+    index: list[IntArray] = [np.zeros((0, dim), dtype=np.int64)]
+    values: list[list[np.ndarray]] = [[np.zeros(0, dtype=np.float32)] for _ in fields]
     wanted, size = leaves_in_box(m, lo, hi, m.config.tree_depth), m.store.batch
     per_leaf = grid.voxels_per_leaf
     for start in range(0, len(wanted), size):  # evicted leaves read a batch at a time
         for leaf in m.store.peek_many(wanted[start : start + size]):  # one per leaf
             if leaf is None or leaf.prob.size == 0:
                 continue
-            index.append(leaf.index)
-            for name, parts in values.items():  # mean, var, prob (one value: pruned)
+            index.append(leaf.index.reshape(1, dim))
+            for name, parts in zip(fields, values, strict=True):  # one value: pruned
                 parts.append(np.broadcast_to(getattr(leaf, name), (per_leaf,)))
-    low = np.zeros(dim, dtype=np.int64)
-    if not index:
-        empty = np.zeros(0)
-        return VoxelTable(grid, np.zeros(0, dtype=np.int64), empty, empty, empty, low, None)
-    leaves = np.array(index, dtype=np.int64).reshape(-1, dim)
+    leaves = np.concatenate(index).astype(np.int64)
     # per-axis voxel keys: the leaf's first key plus the voxel's place in it (x fastest)
     per_axis = (leaves[:, None, :] * grid.side + _local_keys(dim, grid.side)).reshape(-1, dim)
+    return leaves, per_axis, [np.concatenate(parts) for parts in values]
+
+
+def dense_box(
+    m: ReadableMap, lo: FloatArray, hi: FloatArray, fields: tuple[str, ...]
+) -> tuple[IntArray, IntArray, np.ndarray] | None:
+    """The values of the voxels of the leaves overlapping a box, in a dense array of their box.
+
+    Returns ``(low, shape, values)``: the box's first per-axis key and its shape, and
+    ``values`` of shape ``(prod(shape), len(fields))``, a row per cell in C order
+    (NaN where no leaf holds the cell), in the leaves' dtype. ``None`` when the
+    voxels fill less than :data:`DENSE_FILL` of their box (or there are none).
+    """
+    leaves, per_axis, columns = _read_box(m, lo, hi, fields)
+    if leaves.shape[0] == 0:
+        return None
+    side = m.grid.side
+    low, high = leaves.min(axis=0) * side, (leaves.max(axis=0) + 1) * side - 1
+    shape = high - low + 1
+    cells = int(np.prod(shape))
+    if per_axis.shape[0] < DENSE_FILL * cells:
+        return None
+    flat = np.ravel_multi_index(tuple((per_axis - low).T), tuple(shape))
+    dtype = np.result_type(*columns)
+    values = np.full((cells, len(fields)), np.nan, dtype=dtype)
+    for j, column in enumerate(columns):  # one field at a time
+        values[flat, j] = column
+    return low, shape, values
+
+
+def voxel_table(m: ReadableMap, lo: FloatArray, hi: FloatArray) -> VoxelTable:
+    """The values of every voxel of the leaves overlapping the box ``lo, hi`` (metres)."""
+    leaves, per_axis, columns = _read_box(m, lo, hi, ("mean", "var", "prob"))
+    grid = m.grid
+    if leaves.shape[0] == 0:
+        empty = np.zeros(0)
+        low = np.zeros(m.config.dim, dtype=np.int64)
+        return VoxelTable(grid, np.zeros(0, dtype=np.int64), empty, empty, empty, low, None)
     low, high = leaves.min(axis=0) * grid.side, (leaves.max(axis=0) + 1) * grid.side - 1
     slots = None
     if per_axis.shape[0] >= DENSE_FILL * float(np.prod(high - low + 1)):
@@ -130,8 +171,8 @@ def voxel_table(m: ReadableMap, lo: FloatArray, hi: FloatArray) -> VoxelTable:
     else:
         order = np.argsort(pack_keys(per_axis))  # voxel keys are unique
     flat = pack_keys(per_axis[order])
-    cols = {name: np.concatenate(parts).astype(np.float64)[order] for name, parts in values.items()}
-    return VoxelTable(grid, flat, cols["mean"], cols["var"], cols["prob"], low, slots)
+    mean, var, prob = (column.astype(np.float64)[order] for column in columns)
+    return VoxelTable(grid, flat, mean, var, prob, low, slots)
 
 
 @functools.lru_cache(maxsize=8)
