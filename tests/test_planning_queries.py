@@ -218,7 +218,7 @@ def brute_distance(m: OnlineMap, X: np.ndarray, threshold: float) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("search", ["shells", "tree", "few shells, then the tree"])
+@pytest.mark.parametrize("search", ["shells", "tree", "few shells, then the tree", "3d shells"])
 @pytest.mark.parametrize("threshold", [0.5, 0.8])
 def test_distance_matches_brute_force(
     any_map: OnlineMap, threshold: float, search: str, monkeypatch: pytest.MonkeyPatch
@@ -226,8 +226,12 @@ def test_distance_matches_brute_force(
     from octolgp.mapping import distance
 
     monkeypatch.setattr(distance, "COMPILED", search != "tree")
+    if search == "3d shells":  # as many shells in 3D as in 2D
+        monkeypatch.setattr(distance, "SHELLS", {2: 10, 3: 10})
+        monkeypatch.setattr(distance, "BOUNDED_SHELLS", {2: 32, 3: 32})
     if search.startswith("few"):
         monkeypatch.setattr(distance, "SHELLS", {2: 2, 3: 1})
+        monkeypatch.setattr(distance, "BOUNDED_SHELLS", {2: 2, 3: 1})
     m = any_map
     m._occupied = None  # nothing kept from other tests' reads
     rng = np.random.default_rng(7)

@@ -16,7 +16,8 @@ Where numba is installed (:data:`COMPILED`), points near the occupied voxels are
 answered first by a compiled search of the shells of voxels around each point over a
 dense grid of the occupied ones (:mod:`octolgp.mapping.distance_kernel`), exact as
 well; the points it leaves (farther than :data:`SHELLS` voxels from any, and within
-``max_distance``) go to the KD-tree, built only then.
+``max_distance``) go to the KD-tree, built only then. A ``max_distance`` of at most
+:data:`BOUNDED_SHELLS` voxels is searched by shells alone.
 
 Against the true geometry the occupied cubes cover each observed surface point
 with a cube at most one voxel across, so the distance is within a voxel diagonal
@@ -70,6 +71,9 @@ COMPILED = importlib.util.find_spec("numba") is not None
 
 SHELLS = {1: 32, 2: 10, 3: 3}
 """Most shells of voxels searched around a point, by dimension, before the KD-tree."""
+
+BOUNDED_SHELLS = {1: 256, 2: 32, 3: 3}
+"""Most shells, by dimension, searched to cover a whole ``max_distance`` (no KD-tree)."""
 
 GRID_CELLS = 1 << 26
 """Most cells of the dense grid of occupied voxels (bytes); a larger box: the KD-tree only."""
@@ -313,6 +317,9 @@ def occupied_distance(
         from octolgp.mapping.distance_kernel import ring_search  # imports numba
 
         shells = SHELLS[m.config.dim]
+        if math.isfinite(max_distance):  # the whole reach by shells, when few enough
+            reach = math.ceil(max_distance / res) + 1
+            shells = reach if reach <= BOUNDED_SHELLS[m.config.dim] else shells
         out, settled = ring_search(X, grid[0], grid[1], res, found.origin, max_distance, shells)
         todo = np.flatnonzero(~settled)
     for first in range(0, todo.size, QUERY_CHUNK):  # bounded temporaries, chunk by chunk
