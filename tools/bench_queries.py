@@ -20,6 +20,12 @@ Scenes:
   the measured ranges, not ground truth). Distance and gradient points: uniform in the
   box of the map's voxels.
 
+Online (both scenes): the scans inserted one by one into a fresh map, each followed by a
+settle (the deferred fits a read pays first) and a planner's ``distance`` reads at
+``--window-points`` points in a box of ``2 * --window`` m around the sensor: with
+``max_distance=--window``, the same again (nothing changed), and without a bound; each
+against the insert and settle of its scan.
+
 octolgp's raycast marches the interpolated field at half-voxel steps with a sample in
 every voxel it passes, then bisects (``unknown="stop"``: a ray entering unknown space
 ends with NaN; ``"free"``: it passes). OctoMap's ``castRay`` (C++, one Python call per
