@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 import pytest
@@ -227,11 +228,11 @@ def test_distance_matches_brute_force(
 
     monkeypatch.setattr(distance, "COMPILED", search != "tree")
     if search == "3d shells":  # as many shells in 3D as in 2D
-        monkeypatch.setattr(distance, "SHELLS", {2: 10, 3: 10})
-        monkeypatch.setattr(distance, "BOUNDED_SHELLS", {2: 32, 3: 32})
+        monkeypatch.setattr(distance, "SHELLS", MappingProxyType({2: 10, 3: 10}))
+        monkeypatch.setattr(distance, "BOUNDED_SHELLS", MappingProxyType({2: 32, 3: 32}))
     if search.startswith("few"):
-        monkeypatch.setattr(distance, "SHELLS", {2: 2, 3: 1})
-        monkeypatch.setattr(distance, "BOUNDED_SHELLS", {2: 2, 3: 1})
+        monkeypatch.setattr(distance, "SHELLS", MappingProxyType({2: 2, 3: 1}))
+        monkeypatch.setattr(distance, "BOUNDED_SHELLS", MappingProxyType({2: 2, 3: 1}))
     m = any_map
     m._occupied = None  # nothing kept from other tests' reads
     rng = np.random.default_rng(7)

@@ -42,6 +42,7 @@ import importlib.util
 import math
 import weakref
 from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -69,10 +70,10 @@ FIRST_NEIGHBOURS = 8
 COMPILED = importlib.util.find_spec("numba") is not None
 """Whether near points are answered by the compiled search of voxel shells."""
 
-SHELLS = {1: 32, 2: 10, 3: 3}
+SHELLS = MappingProxyType({1: 32, 2: 10, 3: 3})
 """Most shells of voxels searched around a point, by dimension, before the KD-tree."""
 
-BOUNDED_SHELLS = {1: 256, 2: 32, 3: 3}
+BOUNDED_SHELLS = MappingProxyType({1: 256, 2: 32, 3: 3})
 """Most shells, by dimension, searched to cover a whole ``max_distance`` (no KD-tree)."""
 
 GRID_CELLS = 1 << 26

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -43,7 +44,7 @@ from octolgp.training import IntArray
 
 __all__ = ["MODES", "cast", "keyed_table"]
 
-MODES = {"stop": 0, "free": 1, "occupied": 2}
+MODES = MappingProxyType({"stop": 0, "free": 1, "occupied": 2})
 """The kernel's code of each unknown mode (:data:`octolgp.mapping.planning.UNKNOWN_MODES`)."""
 
 _jit: Callable[[Any], Any] = njit(cache=True, nogil=True)
