@@ -219,7 +219,9 @@ def brute_distance(m: OnlineMap, X: np.ndarray, threshold: float) -> np.ndarray:
     return out
 
 
-@pytest.mark.parametrize("search", ["shells", "tree", "few shells, then the tree", "3d shells"])
+@pytest.mark.parametrize(
+    "search", ["shells", "tree", "few shells, then the tree", "3d shells", "no room for a grid"]
+)
 @pytest.mark.parametrize("threshold", [0.5, 0.8])
 def test_distance_matches_brute_force(
     any_map: OnlineMap, threshold: float, search: str, monkeypatch: pytest.MonkeyPatch
@@ -227,6 +229,8 @@ def test_distance_matches_brute_force(
     from octolgp.mapping import distance
 
     monkeypatch.setattr(distance, "COMPILED", search != "tree")
+    if search == "no room for a grid":
+        monkeypatch.setattr(distance, "GRID_CELLS", 1)
     if search == "3d shells":  # as many shells in 3D as in 2D
         monkeypatch.setattr(distance, "SHELLS", MappingProxyType({2: 10, 3: 10}))
         monkeypatch.setattr(distance, "BOUNDED_SHELLS", MappingProxyType({2: 32, 3: 32}))

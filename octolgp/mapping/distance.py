@@ -164,6 +164,7 @@ class Occupied:
     origin: float
     _tree: cKDTree | None = None
     _grid: tuple[np.ndarray, IntArray] | None = None
+    _grid_too_large: bool = False
 
     @property
     def tree(self) -> cKDTree:
@@ -178,17 +179,17 @@ class Occupied:
 
         ``None`` when that box holds more than :data:`GRID_CELLS` cells.
         """
-        if self._grid is None:
+        if self._grid is None and not self._grid_too_large:
             keys = np.floor((self.cubes - self.origin) / self.resolution).astype(np.int64)
             low = keys.min(axis=0)
             shape = keys.max(axis=0) - low + 1
             if float(np.prod(shape.astype(np.float64))) > GRID_CELLS:
-                self._grid = (np.zeros((0,) * self.cubes.shape[1], dtype=bool), low)
+                self._grid_too_large = True
             else:
                 occupied = np.zeros(tuple(shape), dtype=bool)
                 occupied[tuple((keys - low).T)] = True
                 self._grid = (occupied, low)
-        return None if self._grid[0].size == 0 else self._grid
+        return self._grid
 
 
 @dataclass(slots=True)
