@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from types import MappingProxyType
 
 import numpy as np
 import pytest
@@ -77,8 +78,21 @@ def dense_first_event(
     return out
 
 
+@pytest.fixture(params=["numpy", "compiled"])
+def march(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """The numpy march (reading the store or a table), or the compiled one (a table always)."""
+    from octolgp.mapping import planning, voxel_table
+
+    if request.param == "compiled":
+        monkeypatch.setattr(voxel_table, "LOOKUPS_PER_VOXEL", 0.0)
+    monkeypatch.setattr(planning, "COMPILED", request.param == "compiled")
+    return str(request.param)
+
+
 @pytest.mark.parametrize("unknown", ["stop", "free", "occupied"])
-def test_raycast_matches_dense_sampling_of_occupancy(any_map: OnlineMap, unknown: str) -> None:
+def test_raycast_matches_dense_sampling_of_occupancy(
+    any_map: OnlineMap, unknown: str, march: str
+) -> None:
     m = any_map
     o, u = rays(m, 40, seed=1)
     max_range = 6.0 if m.config.dim == 2 else 8.0
@@ -96,7 +110,7 @@ def test_raycast_matches_dense_sampling_of_occupancy(any_map: OnlineMap, unknown
     assert (m.occupancy(at) >= 0.5).all() or unknown != "free"
 
 
-def test_raycast_modes_differ_where_rays_meet_unknown_space(map3d: OnlineMap) -> None:
+def test_raycast_modes_differ_where_rays_meet_unknown_space(map3d: OnlineMap, march: str) -> None:
     """Rays into unobserved space: NaN (stop), a hit where it starts (occupied), or pass."""
     o, u = rays(map3d, 40, seed=2)
     stop = map3d.raycast(o, u, 30.0)
@@ -113,14 +127,14 @@ def test_raycast_modes_differ_where_rays_meet_unknown_space(map3d: OnlineMap) ->
     assert (map3d.raycast(o, u, 0.0) == np.inf).all()
 
 
-def test_raycast_from_inside_an_obstacle_is_zero(any_map: OnlineMap) -> None:
+def test_raycast_from_inside_an_obstacle_is_zero(any_map: OnlineMap, march: str) -> None:
     centres, prob = any_map.voxels()
     inside = centres[prob > 0.9][:5]
     d = any_map.raycast(inside, np.ones_like(inside), 3.0)
     np.testing.assert_array_equal(d, 0.0)
 
 
-def test_segment_free_matches_dense_sampling(any_map: OnlineMap) -> None:
+def test_segment_free_matches_dense_sampling(any_map: OnlineMap, march: str) -> None:
     m = any_map
     o, u = rays(m, 60, seed=3)
     rng = np.random.default_rng(4)
@@ -205,9 +219,26 @@ def brute_distance(m: OnlineMap, X: np.ndarray, threshold: float) -> np.ndarray:
     return out
 
 
+@pytest.mark.parametrize(
+    "search", ["shells", "tree", "few shells, then the tree", "3d shells", "no room for a grid"]
+)
 @pytest.mark.parametrize("threshold", [0.5, 0.8])
-def test_distance_matches_brute_force(any_map: OnlineMap, threshold: float) -> None:
+def test_distance_matches_brute_force(
+    any_map: OnlineMap, threshold: float, search: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from octolgp.mapping import distance
+
+    monkeypatch.setattr(distance, "COMPILED", search != "tree")
+    if search == "no room for a grid":
+        monkeypatch.setattr(distance, "GRID_CELLS", 1)
+    if search == "3d shells":  # as many shells in 3D as in 2D
+        monkeypatch.setattr(distance, "SHELLS", MappingProxyType({2: 10, 3: 10}))
+        monkeypatch.setattr(distance, "BOUNDED_SHELLS", MappingProxyType({2: 32, 3: 32}))
+    if search.startswith("few"):
+        monkeypatch.setattr(distance, "SHELLS", MappingProxyType({2: 2, 3: 1}))
+        monkeypatch.setattr(distance, "BOUNDED_SHELLS", MappingProxyType({2: 2, 3: 1}))
     m = any_map
+    m._occupied = None  # nothing kept from other tests' reads
     rng = np.random.default_rng(7)
     centres, _ = m.voxels()
     lo, hi = centres.min(axis=0) - 1.0, centres.max(axis=0) + 1.0
@@ -218,7 +249,9 @@ def test_distance_matches_brute_force(any_map: OnlineMap, threshold: float) -> N
     assert (got == 0).any()
     assert (got > 1.0).any()
     capped = m.distance(X, threshold, max_distance=0.7)
-    np.testing.assert_array_equal(capped, np.where(want <= 0.7, got, np.inf))
+    near, far = want <= 0.7 - 1e-9, want > 0.7 + 1e-9  # rounding aside
+    np.testing.assert_allclose(capped[near], got[near], rtol=0, atol=1e-9)
+    assert np.isinf(capped[far]).all()
 
 
 def test_distance_of_an_empty_map_is_inf() -> None:
@@ -395,7 +428,9 @@ def test_raycast_reads_the_same_from_a_voxel_table_as_from_the_store(
     any_map: OnlineMap, monkeypatch: pytest.MonkeyPatch, dense: bool
 ) -> None:
     """Many rays read a table of the voxels (dense or by key); few read the store: one answer."""
-    from octolgp.mapping import voxel_table
+    from octolgp.mapping import planning, voxel_table
+
+    monkeypatch.setattr(planning, "COMPILED", False)  # the numpy march, from either
 
     o, u = rays(any_map, 60, seed=10)
     monkeypatch.setattr(voxel_table, "LOOKUPS_PER_VOXEL", 0.0)  # always a table
@@ -405,6 +440,52 @@ def test_raycast_reads_the_same_from_a_voxel_table_as_from_the_store(
     store = [any_map.raycast(o, u, 6.0, unknown=mode) for mode in ("stop", "free", "occupied")]
     for a, b in zip(table, store, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("dense", [True, False])
+@pytest.mark.parametrize("threshold", [0.5, 0.8])
+def test_compiled_raycast_answers_as_the_numpy_march(
+    any_map: OnlineMap, monkeypatch: pytest.MonkeyPatch, dense: bool, threshold: float
+) -> None:
+    """The compiled march and the numpy one: the same misses and NaNs, hits within the bisection."""
+    from octolgp.mapping import planning, voxel_table
+
+    o, u = rays(any_map, 300, seed=11)
+    monkeypatch.setattr(voxel_table, "LOOKUPS_PER_VOXEL", 0.0)  # a table, for both
+    monkeypatch.setattr(voxel_table, "DENSE_FILL", 0.0 if dense else 2.0)
+    tol = planning.BISECTION_TOL * any_map.config.resolution
+    for mode in ("stop", "free", "occupied"):  # each unknown mode
+        monkeypatch.setattr(planning, "COMPILED", True)
+        fast = any_map.raycast(o, u, 12.0, threshold, unknown=mode)
+        monkeypatch.setattr(planning, "COMPILED", False)
+        slow = any_map.raycast(o, u, 12.0, threshold, unknown=mode)
+        np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
+        np.testing.assert_array_equal(np.isinf(fast), np.isinf(slow))
+        hit = np.isfinite(slow)
+        assert hit.sum() > 50
+        np.testing.assert_allclose(fast[hit], slow[hit], rtol=0, atol=tol)
+
+
+def test_compiled_raycast_reads_stored_values_before_hyperparameters(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A map still learning reads the stored P of each voxel: both marches agree there too."""
+    from octolgp.mapping import planning, voxel_table
+
+    data = simulate_paper2d(0, noise=False, n_poses=3, n_beams=90)
+    m = OnlineMap(MapConfig(dim=2, resolution=0.1))
+    m.insert_scans(data.scans)
+    assert m.hyperparameters is None
+    o, u = rays(m, 200, seed=12)
+    monkeypatch.setattr(voxel_table, "LOOKUPS_PER_VOXEL", 0.0)
+    out = []
+    for compiled in (True, False):  # the compiled march, then numpy's
+        monkeypatch.setattr(planning, "COMPILED", compiled)
+        out.append(m.raycast(o, u, 8.0, unknown="free"))
+    np.testing.assert_array_equal(np.isinf(out[0]), np.isinf(out[1]))
+    hit = np.isfinite(out[1])
+    assert hit.sum() > 50
+    np.testing.assert_allclose(out[0][hit], out[1][hit], rtol=0, atol=1e-3 * 0.1)
 
 
 def test_surface_vertices_lie_on_the_level_set_and_faces_face_out(any_map: OnlineMap) -> None:
@@ -568,3 +649,24 @@ def test_the_room_mesh_example_writes_a_mesh(tmp_path: Path) -> None:
     ).stdout
     assert "triangles" in run
     assert sum(line.startswith("f ") for line in out.read_text().splitlines()) > 1000
+
+
+def test_distance_kept_between_inserts_matches_a_fresh_read() -> None:
+    """The occupied centres kept between reads follow the inserts: windows and whole map."""
+    from octolgp.mapping.distance import occupied_distance
+
+    data = simulate_paper2d(1, noise=False, n_poses=10, n_beams=90)
+    m = OnlineMap(MapConfig(dim=2, resolution=0.1, hyperparameters=HP2))
+    rng = np.random.default_rng(3)
+    for scan in data.scans:  # a planner: a window read and a whole-map read after each insert
+        m.insert_scan(scan)
+        X = scan.origin + rng.uniform(-1.5, 1.5, (200, 2))
+        for cap in (1.0, None):
+            got = m.distance(X, max_distance=cap)
+            again = m.distance(X, max_distance=cap)  # the kept tree
+            with m._reading() as fresh:
+                want = occupied_distance(fresh, X, 0.5, np.inf if cap is None else cap)
+            np.testing.assert_array_equal(got, want)
+            np.testing.assert_array_equal(again, want)
+    want = brute_distance(m, X, 0.5)
+    np.testing.assert_allclose(m.distance(X), want, rtol=0, atol=1e-9)

@@ -20,6 +20,12 @@ Scenes:
   the measured ranges, not ground truth). Distance and gradient points: uniform in the
   box of the map's voxels.
 
+Online (both scenes): the scans inserted one by one into a fresh map, each followed by a
+settle (the deferred fits a read pays first) and a planner's ``distance`` reads at
+``--window-points`` points in a box of ``2 * --window`` m around the sensor: with
+``max_distance=--window``, the same again (nothing changed), and without a bound; each
+against the insert and settle of its scan.
+
 octolgp's raycast marches the interpolated field at half-voxel steps with a sample in
 every voxel it passes, then bisects (``unknown="stop"``: a ray entering unknown space
 ends with NaN; ``"free"``: it passes). OctoMap's ``castRay`` (C++, one Python call per
@@ -114,6 +120,7 @@ def ray_rows(
     """Table rows: raycast speed and first-hit error of octolgp and OctoMap."""
     res = m.config.resolution
     rows = []
+    m.raycast(origins[:4000], dirs[:4000], max_range)  # compiles the march (or loads it), untimed
     runs = [("stop", 0.5, False), ("free", 0.5, True), ("free", 0.9, None)]
     for mode, thr, free in runs:  # octolgp in each mode; OctoMap beside it
         ours, t_ours = timed(
@@ -171,8 +178,8 @@ def mesh_rows(
     return rows
 
 
-def room(args: argparse.Namespace) -> tuple[list[str], list[str]]:
-    """The lidar room: ray and distance rows."""
+def room(args: argparse.Namespace) -> tuple[list[str], list[str], list[str]]:
+    """The lidar room: ray, point and online rows."""
     sim = simulate_lidar_room(args.room_poses, seed=0, n_heldout=3)
     scans = [s.downsample(0.2) for s in sim.scans()]
     m = OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=HP3))
@@ -201,7 +208,8 @@ def room(args: argparse.Namespace) -> tuple[list[str], list[str]]:
     pts, labels, _ = sim.heldout_points()
     free = pts[labels == 0]
     free = free[rng.choice(free.shape[0], min(args.points, free.shape[0]), replace=False)]
-    return rows, point_rows("room", m, free, box_distance(free, sim.boxes), rng)
+    online = online_rows("room", m.config, scans, args, clip=(0.05, 4.95))
+    return rows, point_rows("room", m, free, box_distance(free, sim.boxes), rng), online
 
 
 def point_rows(
@@ -250,8 +258,51 @@ def point_rows(
     return rows
 
 
-def intel(args: argparse.Namespace) -> tuple[list[str], list[str]]:
-    """The Intel lab log: ray and point rows."""
+def online_rows(
+    name: str,
+    config: MapConfig,
+    scans: list[Scan],
+    args: argparse.Namespace,
+    clip: tuple[float, float] | None = None,
+) -> list[str]:
+    """Rows: a planner's distance reads after each insert, against the insert's time.
+
+    After each scan is inserted the map is settled (the fits the insert deferred: a
+    read pays them first), then ``distance`` is read at ``--window-points`` points
+    uniform in a ``2 * --window`` m box around the sensor (the vertical axis clipped
+    to ``clip``) with ``max_distance=--window``, read again (the kept tree), and read
+    without a bound. Scans while the map learns its hyperparameters are left out.
+    """
+    m = OnlineMap(config)
+    rng = np.random.default_rng(1)
+    cols: dict[str, list[float]] = {k: [] for k in ("insert", "settle", "win", "again", "whole")}
+    cap, d = args.window, config.dim
+    for s in scans:  # a planner's loop: insert, then read around the robot
+        _, t_insert = timed(lambda s=s: m.insert_scan(s))
+        _, t_settle = timed(m.settle)
+        if m.hyperparameters is None:
+            continue
+        pts = s.origin + rng.uniform(-cap, cap, (args.window_points, d))
+        if clip is not None:
+            pts[:, -1] = np.clip(pts[:, -1], *clip)
+        _, t_win = timed(lambda pts=pts: m.distance(pts, max_distance=cap))
+        _, t_again = timed(lambda pts=pts: m.distance(pts, max_distance=cap))
+        _, t_whole = timed(lambda pts=pts: m.distance(pts))
+        for k, t in zip(cols, (t_insert, t_settle, t_win, t_again, t_whole), strict=True):
+            cols[k].append(t)
+    tot = {k: float(np.sum(v)) for k, v in cols.items()}
+    step = tot["insert"] + tot["settle"]
+    n = len(cols["insert"])
+    ms = {k: 1e3 * float(np.median(v)) for k, v in cols.items()}
+    return [
+        f"| {name} | {n} | {ms['insert']:.2f} + {ms['settle']:.2f} | {ms['win']:.2f} "
+        f"({tot['win'] / step:.1%}) | {ms['again']:.2f} ({tot['again'] / step:.1%}) "
+        f"| {ms['whole']:.2f} ({tot['whole'] / step:.1%}) |"
+    ]
+
+
+def intel(args: argparse.Namespace) -> tuple[list[str], list[str], list[str]]:
+    """The Intel lab log: ray, point and online rows."""
     scans: list[Scan] = list(load_scans(INTEL))
     m = OnlineMap(MapConfig(dim=2, resolution=0.1))
     ref = OctomapReference(0.1, 2)
@@ -275,7 +326,8 @@ def intel(args: argparse.Namespace) -> tuple[list[str], list[str]]:
     )
     centres, _ = m.voxels()
     pts = rng.uniform(centres.min(axis=0), centres.max(axis=0), (args.points, 2))
-    return rows, point_rows("intel", m, pts, None, rng)
+    online = online_rows("intel", m.config, scans, args)
+    return rows, point_rows("intel", m, pts, None, rng), online
 
 
 def main() -> None:
@@ -284,6 +336,8 @@ def main() -> None:
     parser.add_argument("--room-poses", type=int, default=12)
     parser.add_argument("--rays", type=int, default=20_000)
     parser.add_argument("--points", type=int, default=20_000)
+    parser.add_argument("--window", type=float, default=2.0, help="metres: half-box, max_distance")
+    parser.add_argument("--window-points", type=int, default=1000)
     args = parser.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {platform.python_version()}")
     mesh_table = [
@@ -301,16 +355,24 @@ def main() -> None:
         "| scene | query | points | points/s | seconds | error vs exact |",
         "|---|---|---|---|---|---|",
     ]
+    online_table = [
+        "| scene | scans | insert + settle (ms, median) | window read (ms; share of insert + "
+        "settle, sums) | again (kept) | unbounded read |",
+        "|---|---|---|---|---|---|",
+    ]
     for scene in args.scenes.split(","):  # room, intel
-        rays, points = {"room": room, "intel": intel}[scene](args)
+        rays, points, online = {"room": room, "intel": intel}[scene](args)
         ray_table += [r for r in rays if "surface" not in r and "centres" not in r]
         mesh_table += [r for r in rays if "surface" in r or "centres" in r]
         point_table += points
+        online_table += online
     print("\n".join(ray_table))
     print()
     print("\n".join(point_table))
     print()
     print("\n".join(mesh_table))
+    print()
+    print("\n".join(online_table))
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ the pure function of its module (:mod:`~octolgp.mapping.planning`,
 from __future__ import annotations
 
 from contextlib import AbstractContextManager
+from typing import cast
 
 import numpy as np
 
@@ -32,6 +33,7 @@ class PlanningReads:
     """
 
     config: MapConfig
+    _occupied: distance.OccupiedIndex | None = None
 
     def _reading(self, points: FloatArray | None = None) -> AbstractContextManager[ReadableMap]:
         """The map one read comes from; ``points``: the read is a query at these points."""
@@ -193,7 +195,10 @@ class PlanningReads:
 
         Exact to the union of the occupied voxels' cubes (KD-tree over their
         centres, :mod:`octolgp.mapping.distance`); within a voxel diagonal of the
-        distance to the observed surfaces.
+        distance to the observed surfaces. The occupied centres are kept leaf by leaf
+        between reads (recomputed for the leaves whose values changed since), and
+        the tree while its leaves stay the same: a planner's read in a window
+        (``max_distance``) after each insert costs the leaves near it, not the map.
 
         Parameters
         ----------
@@ -202,9 +207,9 @@ class PlanningReads:
         threshold : float, optional
             In (0, 1); a voxel whose stored P(occupied) reaches it is occupied.
         max_distance : float, optional
-            Metres > 0: farther answers are ``inf``, and only the voxels in the
-            points' bounding box grown by it are read (faster on a large map).
-            Default: no bound (every voxel is read).
+            Metres > 0: farther answers are ``inf``, and only the leaves overlapping
+            the points' bounding box grown by it are read (faster on a large map).
+            Default: no bound (every leaf is read).
 
         Returns
         -------
@@ -216,7 +221,11 @@ class PlanningReads:
         thr = planning.check_threshold(threshold)
         limit = distance.check_max_distance(max_distance)
         with self._reading() as m:
-            return distance.occupied_distance(m, X, thr, limit)
+            if cast(object, m) is not self:  # a provisional map, while this one learns
+                return distance.occupied_distance(m, X, thr, limit)
+            if self._occupied is None:
+                self._occupied = distance.OccupiedIndex()
+            return distance.occupied_distance(m, X, thr, limit, self._occupied)
 
     def surface(
         self, threshold: float = 0.5, *, bbox: tuple[object, object] | None = None

@@ -12,18 +12,19 @@ reads it saves are worth that.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 
-from octolgp.geometry.keys import pack_keys, unpack_keys
+from octolgp.geometry.keys import pack_keys
 from octolgp.mapping.coarse import leaves_in_box
 from octolgp.mapping.field import ReadableMap, all_columns
 from octolgp.mapping.grid import LeafGrid
 from octolgp.scan import FloatArray
 from octolgp.training import IntArray
 
-__all__ = ["VoxelTable", "table_pays", "voxel_table"]
+__all__ = ["VoxelTable", "dense_box", "table_pays", "voxel_table"]
 
 LOOKUPS_PER_VOXEL = 4
 """Point reads that justify reading one voxel into a table (measured on the lidar room)."""
@@ -96,34 +97,92 @@ class VoxelTable:
         return self.at_keys(self.grid.voxel_index_keys(X), fields)
 
 
-def voxel_table(m: ReadableMap, lo: FloatArray, hi: FloatArray) -> VoxelTable:
-    """The values of every voxel of the leaves overlapping the box ``lo, hi`` (metres)."""
-    keys: list[IntArray] = [np.zeros(0, dtype=np.int64)]
-    values: dict[str, list[FloatArray]] = {f: [np.zeros(0)] for f in ("mean", "var", "prob")}
+def _read_box(
+    m: ReadableMap, lo: FloatArray, hi: FloatArray, fields: tuple[str, ...]
+) -> tuple[IntArray, IntArray, list[np.ndarray]]:
+    """The leaves overlapping a box: their indices ``(L, d)``, voxel keys, and values.
+
+    Returns the leaf indices, the per-axis keys ``(L V, d)`` of their voxels (leaf by
+    leaf, each in flat order) and, per field, the voxels' values in that order (the
+    leaves' dtype; one value broadcast for a pruned leaf).
+    """
+    dim, grid = m.config.dim, m.grid
+    index: list[IntArray] = [np.zeros((0, dim), dtype=np.int64)]
+    values: list[list[np.ndarray]] = [[np.zeros(0, dtype=np.float32)] for _ in fields]
     wanted, size = leaves_in_box(m, lo, hi, m.config.tree_depth), m.store.batch
+    per_leaf = grid.voxels_per_leaf
     for start in range(0, len(wanted), size):  # evicted leaves read a batch at a time
         for leaf in m.store.peek_many(wanted[start : start + size]):  # one per leaf
             if leaf is None or leaf.prob.size == 0:
                 continue
-            centres = m.grid.voxel_centres(leaf.index)
-            keys.append(m.grid.voxel_keys(centres))
-            for name, parts in values.items():  # mean, var, prob
-                v = np.broadcast_to(getattr(leaf, name), (centres.shape[0],))
-                parts.append(v.astype(np.float64))
-    flat = np.concatenate(keys)
-    order = np.argsort(flat, kind="stable")
-    flat = flat[order]
-    cols = {name: np.concatenate(parts)[order] for name, parts in values.items()}
-    dim = m.config.dim
-    low = np.zeros(dim, dtype=np.int64)
+            index.append(leaf.index.reshape(1, dim))
+            for name, parts in zip(fields, values, strict=True):  # one value: pruned
+                parts.append(np.broadcast_to(getattr(leaf, name), (per_leaf,)))
+    leaves = np.concatenate(index).astype(np.int64)
+    # per-axis voxel keys: the leaf's first key plus the voxel's place in it (x fastest)
+    per_axis = (leaves[:, None, :] * grid.side + _local_keys(dim, grid.side)).reshape(-1, dim)
+    return leaves, per_axis, [np.concatenate(parts) for parts in values]
+
+
+def dense_box(
+    m: ReadableMap, lo: FloatArray, hi: FloatArray, fields: tuple[str, ...]
+) -> tuple[IntArray, IntArray, np.ndarray] | None:
+    """The values of the voxels of the leaves overlapping a box, in a dense array of their box.
+
+    Returns ``(low, shape, values)``: the box's first per-axis key and its shape, and
+    ``values`` of shape ``(prod(shape), len(fields))``, a row per cell in C order
+    (NaN where no leaf holds the cell), in the leaves' dtype. ``None`` when the
+    voxels fill less than :data:`DENSE_FILL` of their box (or there are none).
+    """
+    leaves, per_axis, columns = _read_box(m, lo, hi, fields)
+    if leaves.shape[0] == 0:
+        return None
+    side = m.grid.side
+    low, high = leaves.min(axis=0) * side, (leaves.max(axis=0) + 1) * side - 1
+    shape = high - low + 1
+    cells = int(np.prod(shape))
+    if per_axis.shape[0] < DENSE_FILL * cells:
+        return None
+    flat = np.ravel_multi_index(tuple((per_axis - low).T), tuple(shape))
+    dtype = np.result_type(*columns)
+    values = np.full((cells, len(fields)), np.nan, dtype=dtype)
+    for j, column in enumerate(columns):  # one field at a time
+        values[flat, j] = column
+    return low, shape, values
+
+
+def voxel_table(m: ReadableMap, lo: FloatArray, hi: FloatArray) -> VoxelTable:
+    """The values of every voxel of the leaves overlapping the box ``lo, hi`` (metres)."""
+    leaves, per_axis, columns = _read_box(m, lo, hi, ("mean", "var", "prob"))
+    grid = m.grid
+    if leaves.shape[0] == 0:
+        empty = np.zeros(0)
+        low = np.zeros(m.config.dim, dtype=np.int64)
+        return VoxelTable(grid, np.zeros(0, dtype=np.int64), empty, empty, empty, low, None)
+    low, high = leaves.min(axis=0) * grid.side, (leaves.max(axis=0) + 1) * grid.side - 1
     slots = None
-    if flat.size:
-        per_axis = unpack_keys(flat, dim)
-        low, high = per_axis.min(axis=0), per_axis.max(axis=0)
-        if flat.size >= DENSE_FILL * float(np.prod(high - low + 1)):
-            slots = np.full(tuple(high - low + 1), -1, dtype=np.int64)
-            slots[tuple((per_axis - low).T)] = np.arange(flat.size)
-    return VoxelTable(m.grid, flat, cols["mean"], cols["var"], cols["prob"], low, slots)
+    if per_axis.shape[0] >= DENSE_FILL * float(np.prod(high - low + 1)):
+        # a dense index: its cells in reversed axis order are the packed keys ascending
+        slots = np.full(tuple(high - low + 1), -1, dtype=np.int64)
+        slots[tuple((per_axis - low).T)] = np.arange(per_axis.shape[0])
+        ascending = slots.transpose().ravel()
+        order = ascending[ascending >= 0]
+        slots[tuple((per_axis[order] - low).T)] = np.arange(order.size)
+    else:
+        order = np.argsort(pack_keys(per_axis))  # voxel keys are unique
+    flat = pack_keys(per_axis[order])
+    mean, var, prob = (column.astype(np.float64)[order] for column in columns)
+    return VoxelTable(grid, flat, mean, var, prob, low, slots)
+
+
+@functools.lru_cache(maxsize=8)
+def _local_keys(dim: int, side: int) -> IntArray:
+    """Per-axis key offsets ``(side**dim, dim)`` of a leaf's voxels, in flat order (x fastest)."""
+    steps = np.arange(side, dtype=np.int64)
+    grids = np.meshgrid(*([steps] * dim), indexing="ij")
+    offsets = np.stack([g.ravel(order="F") for g in grids], axis=1)
+    offsets.setflags(write=False)
+    return offsets
 
 
 def table_pays(m: ReadableMap, lo: FloatArray, hi: FloatArray, lookups: float) -> bool:
