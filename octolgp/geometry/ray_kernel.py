@@ -45,6 +45,7 @@ def _walk(
     """Mark (dense) or list (sparse) each segment's voxels; returns how many were listed."""
     n, dim = crossings.shape
     nxt = np.empty(dim, dtype=np.int64)
+    t_next = np.empty(dim)  # each axis's next crossing (inf: none left), computed once
     k = 0
     for s in range(n):  # one segment per iteration
         idx = start[s]
@@ -54,6 +55,7 @@ def _walk(
         for a in range(dim):
             nxt[a] = 1
             remaining += crossings[s, a]
+            t_next[a] = (1 - gap[s, a]) / size[s, a] if crossings[s, a] >= 1 else np.inf
         while True:  # the voxel entered at t, then the next crossing
             near = t >= near_from
             if dense:
@@ -69,14 +71,14 @@ def _walk(
                 break
             best = -1
             for a in range(dim):  # the nearest crossing; on a tie the last axis
-                if nxt[a] <= crossings[s, a]:
-                    ta = (nxt[a] - gap[s, a]) / size[s, a]
-                    if best < 0 or ta <= t:
-                        best = a
-                        t = ta
+                if nxt[a] <= crossings[s, a] and (best < 0 or t_next[a] <= t):
+                    best = a
+                    t = t_next[a]
             idx += move[s, best]
             nxt[best] += 1
             remaining -= 1
+            if nxt[best] <= crossings[s, best]:
+                t_next[best] = (nxt[best] - gap[s, best]) / size[s, best]
     return k
 
 
