@@ -38,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.config import MapConfig
-from octolgp.geometry import ray_kernel
+from octolgp.geometry import merge_kernel, ray_kernel
 from octolgp.geometry.keys import (
     KEY_BITS,
     KeyRegion,
@@ -564,14 +564,17 @@ def _combine(
     dim: int,
 ) -> VoxelObservations:
     """Static observations from sorted unique packed voxels, counts and first returns."""
-    packed = merge_unique(hit_vox, free_vox)
+    if merge_kernel.AVAILABLE:
+        packed, at, at_free = merge_kernel.merge_positions(hit_vox, free_vox)
+    else:
+        packed = merge_unique(hit_vox, free_vox)
+        at, at_free = np.searchsorted(packed, hit_vox), np.searchsorted(packed, free_vox)
     hits = np.zeros(packed.size, dtype=np.int64)
     frees = np.zeros(packed.size, dtype=np.int64)
     first_hit = np.full((packed.size, dim), np.nan)
-    at = np.searchsorted(packed, hit_vox)
     hits[at] = hit_n
     first_hit[at] = hit_points
-    frees[np.searchsorted(packed, free_vox)] = free_n
+    frees[at_free] = free_n
     return _without_forgetting(unpack_keys(packed, dim), hits, frees, first_hit)
 
 
