@@ -479,8 +479,8 @@ class LatticeConfig:
     inducing_spacing : float or None
         Largest spacing of the inducing lattice as a fraction of the length scale, at
         least 1e-6 (:data:`MIN_SPACING`); the lattice gets
-        ``ceil(halo box edge / (spacing × l))`` points per axis, at least one per 3 voxels
-        and at most ``max_inducing_per_axis``. ``None`` (default): 0.4 in 2D, 0.5 in 3D,
+        ``ceil(halo box edge / (spacing × l))`` points per axis, at least
+        ``min_inducing_per_axis`` and at most ``max_inducing_per_axis``. ``None`` (default): 0.4 in 2D, 0.5 in 3D,
         where a denser lattice does not help and a tile costs ``k**(3 d)``.
     max_inducing_per_axis : int or None
         Cap on the lattice points per axis (the product table holds
@@ -507,8 +507,9 @@ class LatticeConfig:
         blurs a return over several voxels), at most ``max_inducing_per_axis``. ``None``
         (default): points at most 4/3 voxels apart in 2D (6 on the default tile's halo
         box of 8: with 4, a wall's occupancy spread a cell into a doorway beside it; with
-        5, a moved crate's last cell cleared a look late), 3 voxels in 3D, where a point
-        costs more.
+        5, a moved crate's last cell cleared a look late), 2 voxels in 3D (3 on the tile's
+        halo box of 6: with 2, which a learnt length scale of metres gave, the P = 0.5
+        level set lay about a voxel in front of surfaces; 4 costs 3.5 times as much a fit).
     fill_voxels : int or None
         How far the GP may fill space no beam saw: a voxel takes the GP's value only
         when some voxel within this many voxels of it (along every axis: a cube of edge
@@ -621,7 +622,7 @@ DEFAULT_INDUCING_SPACING = MappingProxyType({2: 0.4, 3: 0.5})
 DEFAULT_MAX_INDUCING = MappingProxyType({2: 12, 3: 4})
 """The default ``max_inducing_per_axis`` per dimension (see :class:`LatticeConfig`)."""
 
-VOXELS_PER_INDUCING = MappingProxyType({2: 4 / 3, 3: 3.0})
+VOXELS_PER_INDUCING = MappingProxyType({2: 4 / 3, 3: 2.0})
 """Per dimension, the largest lattice spacing in voxels whatever the length scale, which
 gives the default ``min_inducing_per_axis`` (see :class:`LatticeConfig`)."""
 

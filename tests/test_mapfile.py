@@ -491,8 +491,11 @@ def test_a_3d_map_file_of_leaves_of_four_reopens_as_it_was(tmp_path: Path) -> No
 
     room = simulate_lidar_room(3, seed=1, n_azimuth=128, n_elevation=8, max_range=8.0, n_heldout=1)
     scans = [s.downsample(0.2) for s in room.scans()]
-    config = MapConfig(
-        dim=3, resolution=0.2, hyperparameters=HP, lattice=LatticeConfig(fill_voxels=-1)
+    config = MapConfig(  # the lattice of then: one point per 3 voxels of the halo box
+        dim=3,
+        resolution=0.2,
+        hyperparameters=HP,
+        lattice=LatticeConfig(fill_voxels=-1, min_inducing_per_axis=2),
     )
     old = dataclasses.replace(config, online=dataclasses.replace(config.online, leaf_depth=14))
     path = tmp_path / "old3d.octolgp"
