@@ -182,9 +182,17 @@ def room(args: argparse.Namespace) -> tuple[list[str], list[str], list[str]]:
     """The lidar room: ray, point and online rows."""
     sim = simulate_lidar_room(args.room_poses, seed=0, n_heldout=3)
     scans = [s.downsample(0.2) for s in sim.scans()]
-    m = OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=HP3))
+    hp = None if args.learn else HP3  # learnt from the scans, as a user's map learns them
+    m = OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=hp))
     ref = OctomapReference(0.2, 3)
-    _, t_build = timed(lambda: [m.insert_scan(s) for s in scans] and m.settle())
+
+    def build() -> None:
+        for s in scans:  # one scan at a time, as a robot inserts them
+            m.insert_scan(s)
+        m.flush()  # learns, should the scans be fewer than the learning phase's
+        m.settle()
+
+    _, t_build = timed(build)
     for s in scans:  # the same points into OctoMap
         ref.insert_scan(s)
     print(f"room: {len(scans)} scans mapped in {t_build:.1f} s")
@@ -338,6 +346,12 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=20_000)
     parser.add_argument("--window", type=float, default=2.0, help="metres: half-box, max_distance")
     parser.add_argument("--window-points", type=int, default=1000)
+    parser.add_argument(
+        "--learn",
+        action="store_true",
+        help="room: learn the hyperparameters from the scans (the default config) instead of "
+        "giving length scale 0.8 m",
+    )
     args = parser.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {platform.python_version()}")
     mesh_table = [
