@@ -75,6 +75,24 @@ def timed(call: Callable[[], object]) -> tuple[object, float]:
     return out, time.perf_counter() - t0
 
 
+def map_both(m: OnlineMap, ref: OctomapReference, scans: list[Scan]) -> float:
+    """Map ``scans`` with octolgp and OctoMap; octolgp's seconds.
+
+    ``m`` takes them one at a time, then learns if it still must, and settles.
+    """
+
+    def build() -> None:
+        for s in scans:  # one scan at a time, as a robot inserts them
+            m.insert_scan(s)
+        m.flush()  # learns, should the scans be fewer than the learning phase's
+        m.settle()
+
+    _, seconds = timed(build)
+    for s in scans:  # the same points into OctoMap
+        ref.insert_scan(s)
+    return seconds
+
+
 def octomap_cast(
     ref: OctomapReference, origins: np.ndarray, dirs: np.ndarray, max_range: float, free: bool
 ) -> tuple[np.ndarray, float]:
@@ -195,16 +213,7 @@ def room(args: argparse.Namespace) -> tuple[list[str], list[str], list[str]]:
     hp = None if args.learn else HP3  # learnt from the scans, as a user's map learns them
     m = OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=hp))
     ref = OctomapReference(0.2, 3)
-
-    def build() -> None:
-        for s in scans:  # one scan at a time, as a robot inserts them
-            m.insert_scan(s)
-        m.flush()  # learns, should the scans be fewer than the learning phase's
-        m.settle()
-
-    _, t_build = timed(build)
-    for s in scans:  # the same points into OctoMap
-        ref.insert_scan(s)
+    t_build = map_both(m, ref, scans)
     print(f"room: {len(scans)} scans mapped in {t_build:.1f} s")
     rng = np.random.default_rng(0)
     origins, dirs, exact = [], [], []
@@ -360,16 +369,7 @@ def street(args: argparse.Namespace) -> tuple[list[str], list[str], list[str]]:
     hp = None if args.learn else HP3
     m = OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=hp))
     ref = OctomapReference(0.2, 3)
-
-    def build() -> None:
-        for s in scans:  # one scan at a time, as a robot inserts them
-            m.insert_scan(s)
-        m.flush()
-        m.settle()
-
-    _, t_build = timed(build)
-    for s in scans:  # the same points into OctoMap
-        ref.insert_scan(s)
+    t_build = map_both(m, ref, scans)
     print(f"street: {len(scans)} scans mapped in {t_build:.1f} s")
     held = mission.scan(107)
     delta = held.points - held.origin
@@ -399,16 +399,7 @@ def office(args: argparse.Namespace) -> tuple[list[str], list[str], list[str]]:
     held = [s for i, s in enumerate(sim.scans) if i % 4 == 0]
     m = OnlineMap(MapConfig(dim=2, resolution=0.1))
     ref = OctomapReference(0.1, 2)
-
-    def build() -> None:
-        for s in train:  # one scan at a time, as a robot inserts them
-            m.insert_scan(s)
-        m.flush()
-        m.settle()
-
-    _, t_build = timed(build)
-    for s in train:  # the same points into OctoMap
-        ref.insert_scan(s)
+    t_build = map_both(m, ref, train)
     print(f"office: {len(train)} scans mapped in {t_build:.1f} s")
     o, u, t = [], [], []
     for s in held:  # the held-out returns and their exact ranges
