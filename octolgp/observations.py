@@ -143,6 +143,15 @@ def sorted_unique(values: IntArray) -> IntArray:
     return _distinct(np.sort(values, kind="stable" if values.size < 64 else "quicksort"))
 
 
+def sorted_contains(sorted_values: IntArray, queries: IntArray) -> NDArray[np.bool_]:
+    """Whether each query occurs in an ascending array (a binary search per query)."""
+    if sorted_values.size == 0:
+        return np.zeros(queries.shape, dtype=bool)
+    at = np.minimum(np.searchsorted(sorted_values, queries), sorted_values.size - 1)
+    found: NDArray[np.bool_] = sorted_values[at] == queries
+    return found
+
+
 def merge_unique(*runs: IntArray) -> IntArray:
     """The sorted unique values of ascending int64 arrays (a stable sort merges the runs)."""
     return _distinct(np.sort(np.concatenate([np.zeros(0, dtype=np.int64), *runs]), kind="stable"))

@@ -35,6 +35,7 @@ from octolgp.geometry.keys import (
     unpack_keys,
 )
 from octolgp.geometry.raycast import traverse_voxels
+from octolgp.observations import sorted_contains
 from octolgp.scan import Scan, as_points
 
 IntArray = NDArray[np.int64]
@@ -81,15 +82,6 @@ def _sorted_unique(values: IntArray) -> IntArray:
     return v[np.r_[True, v[1:] != v[:-1]]] if v.size else v
 
 
-def _contains(sorted_values: IntArray, queries: IntArray) -> NDArray[np.bool_]:
-    """Whether each query occurs in a sorted array."""
-    if sorted_values.size == 0:
-        return np.zeros(queries.shape, dtype=bool)
-    at = np.minimum(np.searchsorted(sorted_values, queries), sorted_values.size - 1)
-    found: NDArray[np.bool_] = sorted_values[at] == queries
-    return found
-
-
 def _batch_updates(batch: list[Scan], config: MapConfig) -> IntArray:
     """Compute one batch's update codes, sorted by voxel then scan (``computeUpdate``)."""
     res, depth = config.resolution, config.tree_depth
@@ -124,7 +116,7 @@ def _batch_updates(batch: list[Scan], config: MapConfig) -> IntArray:
     free = _sorted_unique(np.concatenate(frees)) if len(frees) > 1 else frees[0]
 
     # Occupied wins: drop a miss where the same scan hits the same voxel.
-    free = free[~_contains(hits - 1, free)]
+    free = free[~sorted_contains(hits - 1, free)]
     return np.sort(np.concatenate([free, hits]))
 
 
@@ -141,7 +133,7 @@ def _apply_updates(
     touched = voxel[first]
 
     # New voxels enter the map unknown (log-odds 0), keeping the keys sorted.
-    new = touched[~_contains(keys, touched)]
+    new = touched[~sorted_contains(keys, touched)]
     at = np.searchsorted(keys, new)
     keys = np.insert(keys, at, new)
     log_odds = np.insert(log_odds, at, np.float32(0.0))

@@ -64,6 +64,7 @@ from octolgp.observations import (
     advance,
     effective_counts,
     observe,
+    sorted_contains,
 )
 from octolgp.scan import FloatArray, Scan
 from octolgp.sweep import swept_keys
@@ -301,8 +302,7 @@ def _moved_returns(
     seen = packed_voxels[rank] == old_keys if n else np.zeros(old_keys.size, dtype=bool)
     old_code = np.where(seen, old_owner * n + rank, -1)
     dropped = np.sort(owner[drop] * n + voxel[drop])  # few: a search beats np.isin's sort
-    found = np.minimum(np.searchsorted(dropped, old_code), max(dropped.size - 1, 0))
-    gone = dropped[found] == old_code if dropped.size else np.zeros(old_code.size, dtype=bool)
+    gone = sorted_contains(dropped, old_code)
     add = np.flatnonzero(replace)
     keys = np.concatenate([old_keys[~gone], packed_voxels[voxel[add]]])
     pos = np.concatenate([old_pos[~gone], position[add]])
