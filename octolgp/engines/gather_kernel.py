@@ -65,7 +65,7 @@ def _pairs(
             if ((c + halo) >> shift) > q and q + 1 < n_leaf:
                 ok_hi |= 1 << (dim - 1 - a)
         for o in range(n_off):  # offset o takes the upper leaf where its bit is set
-            if (o & ok_hi) != o or ((~o) & ok_lo & (n_off - 1)) != (~o) & (n_off - 1):
+            if o & ~ok_hi or (o ^ (n_off - 1)) & ~ok_lo:  # a leaf that does not hold it
                 continue
             if count_only:
                 cursor[o + 1] += 1
