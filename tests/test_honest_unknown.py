@@ -9,8 +9,16 @@ import numpy as np
 import pytest
 
 from octolgp import Hyperparameters, LatticeConfig, MapConfig, OctolgpError, OnlineMap, Scan
-from octolgp.engines.lattice import observed_near
+from octolgp.engines import lattice
+from octolgp.engines.lattice import (
+    LatticeEvidence,
+    fit_lattice_leaves,
+    observed_near,
+    tile_layout,
+    tiles_seeing,
+)
 from octolgp.mapping.grid import LeafGrid
+from octolgp.mapping.store import Leaf
 from octolgp.sim.scenes import ray_box_distance
 
 HP = Hyperparameters(length_scale=0.5, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
@@ -98,14 +106,6 @@ def test_tiles_that_see_nothing_are_not_fitted_and_read_as_if_fitted(
 ) -> None:
     """A fit that leaves out the tiles without an observed voxel in their halo boxes
     equals the fit of every tile with the voxels far from every observation masked."""
-    from octolgp.engines import lattice
-    from octolgp.engines.lattice import (
-        LatticeEvidence,
-        fit_lattice_leaves,
-        tile_layout,
-        tiles_seeing,
-    )
-    from octolgp.mapping.store import Leaf
 
     base = MapConfig(dim=dim, resolution=0.2, hyperparameters=HP)
     depth = base.tree_depth - leaf_log2
