@@ -7,11 +7,12 @@ import dataclasses
 import numpy as np
 import pytest
 
-from octolgp import MapConfig, OnlineConfig, Scan
+from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, Scan
 from octolgp.engines import gather_kernel
-from octolgp.engines.lattice import halo_pairs_numpy
+from octolgp.engines.lattice import LatticeEvidence, gather_observations, halo_pairs_numpy
 from octolgp.mapping.grid import LeafGrid
 from octolgp.observations import advance, observe
+from octolgp.sweep import swept_keys
 
 pytestmark = pytest.mark.skipif(not gather_kernel.AVAILABLE, reason="numba is not installed")
 
@@ -97,9 +98,6 @@ def test_advance_equals_the_numpy_rule(dim: int, clear_scans: int) -> None:
 def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
     dim: int, clear_scans: int, fresh: bool, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from octolgp import Hyperparameters, OnlineMap
-    from octolgp.engines.lattice import LatticeEvidence, gather_observations
-    from octolgp.sweep import swept_keys
 
     hp = Hyperparameters(length_scale=0.5, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
     base = MapConfig(dim=dim, resolution=0.1, hyperparameters=hp)
