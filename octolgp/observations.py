@@ -522,8 +522,8 @@ def observe(
     free_codes, weak_codes = _free_codes(
         origins[seg], beams.free_end[seg], scan[seg], res, depth, near, region=region
     )
-    free_codes = free_codes[~np.isin(free_codes, hit_codes, assume_unique=True)]
-    weak_codes = weak_codes[~np.isin(weak_codes, hit_codes, assume_unique=True)]
+    free_codes = free_codes[~sorted_contains(hit_codes, free_codes)]  # both ascending
+    weak_codes = weak_codes[~sorted_contains(hit_codes, weak_codes)]
     mask = (1 << (KEY_BITS * dim)) - 1
     one = len(scan_list) == 1  # codes of one scan ascend as their voxels do
     hit_vox, hit_n = _unique_counts(hit_codes & mask, one)
@@ -541,7 +541,7 @@ def observe(
     obs = dataclasses.replace(obs, weak_frees=weak)
     if len(scan_list) == 1:
         return one_scan_summary(obs, k)
-    strong = free_codes[~np.isin(free_codes, weak_codes, assume_unique=True)]
+    strong = free_codes[~sorted_contains(weak_codes, free_codes)]
     return _summarise(obs, hit_codes, code_points, strong, k)
 
 
