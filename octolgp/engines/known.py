@@ -7,8 +7,8 @@ within ``MapConfig.fill_voxels`` of it along every axis, and only a known voxel 
 the GP's value (elsewhere it holds NaN and reads unknown). Each engine keeps, per leaf,
 which voxels of its halo box are seen (the lattice engine in its counts and swept
 bitmap, the exact engine in a seen mask); :func:`halo_pairs` scatters a step's seen
-voxels into the leaves whose halo boxes hold them, :func:`grow_seen` merges them into
-the leaves' masks, and :func:`seen_near` gives the known voxels of leaves from their
+voxels into the leaves whose halo boxes hold them (:func:`near_leaf`: those that can make
+a voxel of the leaf known), :func:`grow_seen` merges them into the leaves' masks, and :func:`seen_near` gives the known voxels of leaves from their
 masks. ``fill_voxels`` is at most the leaf's halo in voxels, so a leaf's halo box holds
 every seen voxel that counts for its voxels.
 """
@@ -95,6 +95,33 @@ def halo_pairs_numpy(voxel_keys: IntArray, grid: LeafGrid) -> HaloPairs:
     parts = (vox_parts, leaf_parts, flat_parts, cell_parts)
     voxel, leaf_key, flat, cell = (np.concatenate(p) for p in parts)
     return voxel, leaf_key, flat, cell, origin, extent
+
+
+def near_leaf(flat: IntArray, grid: LeafGrid, fill: int) -> NDArray[np.bool_]:
+    """Whether halo-box voxels lie within ``fill`` voxels of their leaf along every axis.
+
+    Only such a seen voxel makes a voxel of the leaf known (:func:`seen_near`).
+
+    Parameters
+    ----------
+    flat : ndarray of int64, shape (p,)
+        Flat indices into a leaf's halo box (x fastest).
+    grid : LeafGrid
+    fill : int
+        At least 0.
+
+    Returns
+    -------
+    ndarray of bool, shape (p,)
+    """
+    side, halo = grid.side, grid.halo_voxels
+    box = side + 2 * halo
+    lo, hi = halo - fill, halo + side + fill
+    out = np.ones(flat.shape, dtype=bool)
+    for a in range(grid.dim):  # per axis
+        c = (flat // box**a) % box
+        out &= (c >= lo) & (c < hi)
+    return out
 
 
 def grow_seen(
