@@ -90,9 +90,9 @@ class ExactEvidence:
     seen : ndarray of bool, shape (H,) or (0,)
         Per halo-box voxel (flat, x fastest), whether a scan observed or swept it
         (:mod:`octolgp.engines.known`); only the voxels within ``fill_voxels`` of the
-        leaf, the others never make a voxel of it known. Length 0: no mask, every voxel counts as seen
-        (a map with ``fill_voxels`` -1, or a leaf recorded before the mask, map files
-        of version 8 and older).
+        leaf, the others never make a voxel of it known. Length 0: no mask, every voxel
+        counts as seen (a map with ``fill_voxels`` -1, or a leaf recorded before the
+        mask, in map files of version 8 and older).
     """
 
     hits: FloatArray
