@@ -516,8 +516,10 @@ class LatticeConfig:
         ``2 k + 1``) was observed, free or occupied; farther out it holds no value and
         reads unknown (0.5), like space outside every leaf. The gaps between rays
         within ``k`` voxels of them are filled, rooms no beam entered and space beyond
-        the last observation are not. At most the tile's halo in voxels. ``-1``: every
-        voxel of a leaf takes the GP's value (files written before this setting).
+        the last observation are not. Both leaf engines keep it (the exact engine in a
+        seen mask per leaf, :mod:`octolgp.engines.known`). At most the halo in voxels of
+        what the engine fits: a tile's (the exact engine: a leaf's). ``-1``: every voxel
+        of a leaf takes the GP's value (files written before this setting).
         ``None`` (default): :data:`DEFAULT_FILL_VOXELS`.
     sweep_angle : float or None
         The field of view between beams counts as seen (2D scans): two beams of a scan
@@ -594,7 +596,7 @@ CLEAR_MARGIN_VOXELS = 5
 """The default ``clear_margin`` in voxels (see :class:`LatticeConfig`)."""
 
 DEFAULT_FILL_VOXELS = MappingProxyType({2: 2, 3: 1})
-"""The default ``fill_voxels`` per dimension, capped by the tile's halo (see
+"""The default ``fill_voxels`` per dimension, capped by the halo it may reach (see
 :class:`LatticeConfig`): the most the default tiles allow (BENCHMARKS.md, "Honest
 unknown")."""
 
@@ -723,10 +725,11 @@ class MapConfig:
             tile's halo), checked here because a config file may give the dimension
             they depend on later.
         """
-        if not -1 <= self.fill_voxels <= self.tile_halo_voxels:
+        if not -1 <= self.fill_voxels <= self.fill_halo_voxels:
+            what = "a leaf's" if self.online.engine == "exact" else "the tile's"
             raise OctolgpError(
-                f"LatticeConfig.fill_voxels must be -1 or at most the tile's halo "
-                f"({self.tile_halo_voxels} voxels), got {self.fill_voxels}"
+                f"LatticeConfig.fill_voxels must be -1 or at most {what} halo "
+                f"({self.fill_halo_voxels} voxels), got {self.fill_voxels}"
             )
         if self.dim == 3 and self.sweep_angle:
             raise OctolgpError(
@@ -801,7 +804,19 @@ class MapConfig:
         """Voxels from an observed one within which the GP fills (or its default)."""
         if self.lattice.fill_voxels is not None:
             return self.lattice.fill_voxels
-        return min(DEFAULT_FILL_VOXELS[self.dim], self.tile_halo_voxels)
+        return min(DEFAULT_FILL_VOXELS[self.dim], self.fill_halo_voxels)
+
+    @property
+    def fill_halo_voxels(self) -> int:
+        """The most ``fill_voxels`` may be: the halo, in whole voxels, of what the engine fits.
+
+        A lattice tile's (:attr:`tile_halo_voxels`); an exact leaf's, ``halo`` of the
+        leaf's edge rounded up (its halo box holds every voxel that counts).
+        """
+        if self.online.engine == "exact":
+            side = 1 << (self.tree_depth - self.leaf_depth)
+            return math.ceil(self.halo * side - 1e-9)
+        return self.tile_halo_voxels
 
     @property
     def sweep_angle(self) -> float:

@@ -9,7 +9,8 @@ import pytest
 
 from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, Scan
 from octolgp.engines import gather_kernel
-from octolgp.engines.lattice import LatticeEvidence, gather_observations, halo_pairs_numpy
+from octolgp.engines.known import halo_pairs_numpy
+from octolgp.engines.lattice import LatticeEvidence, gather_observations
 from octolgp.mapping.grid import LeafGrid
 from octolgp.observations import advance, observe
 from octolgp.sweep import swept_keys

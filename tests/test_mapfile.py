@@ -96,8 +96,8 @@ def test_leaf_encoding_round_trips_and_rejects_corruption(engine: str) -> None:
         else:
             assert back.pruned == leaf.pruned
             assert not back.pending
-            assert np.array_equal(back.prob, leaf.prob)
-            assert np.array_equal(back.var, leaf.var)
+            assert np.array_equal(back.prob, leaf.prob, equal_nan=True)
+            assert np.array_equal(back.var, leaf.var, equal_nan=True)
         with pytest.raises(OctolgpError, match=r"bytes|header|truncated|checksum"):
             decode_leaf(blob[:-3], codec, grid)
         with pytest.raises(OctolgpError, match="header"):
@@ -308,6 +308,8 @@ def _old_record(leaf: object, version: int) -> bytes:
 def test_old_leaf_records_still_read(engine: str, version: int) -> None:
     """Leaf records of file version 2 (records 1 and 2) decode to the same leaves."""
     config = dataclasses.replace(CONFIG, online=dataclasses.replace(CONFIG.online, engine=engine))
+    if engine == "exact":  # such files filled every voxel: their leaves kept no seen mask
+        config = dataclasses.replace(config, lattice=LatticeConfig(fill_voxels=-1))
     m = OnlineMap(config)
     m.insert_scans(_scans()[:2])
     codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)

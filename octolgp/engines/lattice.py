@@ -28,7 +28,6 @@ from typing import cast
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
 
 from octolgp.config import Hyperparameters, MapConfig
 from octolgp.engines import gather_kernel
@@ -40,6 +39,7 @@ from octolgp.engines.base import (
     read_arrays,
     stage,
 )
+from octolgp.engines.known import halo_pairs, seen_near
 from octolgp.engines.lattice_record import (
     decode_lattice_swept,
     encode_lattice,
@@ -150,70 +150,7 @@ def halo_copies(obs: VoxelObservations, grid: LeafGrid) -> tuple[IntArray, IntAr
     Returns the voxel (index into ``obs``), the leaf's packed key and the voxel's flat
     index in that leaf's halo box, per pair; pairs are grouped by the neighbour offset.
     """
-    return _halo_pairs(obs.keys, grid)[:3]
-
-
-def _halo_pairs(
-    voxel_keys: IntArray, grid: LeafGrid
-) -> tuple[IntArray, IntArray, IntArray, IntArray, tuple[int, ...], tuple[int, ...]]:
-    """:func:`halo_pairs_numpy`, by the compiled loop where numba is installed."""
-    if gather_kernel.AVAILABLE:
-        n_leaf = 1 << grid.leaf_depth
-        return gather_kernel.halo_pairs(voxel_keys, grid.side, grid.halo_voxels, n_leaf)
-    return halo_pairs_numpy(voxel_keys, grid)
-
-
-def halo_pairs_numpy(
-    voxel_keys: IntArray, grid: LeafGrid
-) -> tuple[IntArray, IntArray, IntArray, IntArray, tuple[int, ...], tuple[int, ...]]:
-    """:func:`halo_copies` of the voxels ``voxel_keys`` (n, d), with each pair's leaf cell.
-
-    A pair's cell is its leaf's place in the box of the pairs' leaves.
-
-    Returns
-    -------
-    voxel, leaf_key, flat : ndarray of int64, shape (p,)
-        As :func:`halo_copies`.
-    cell : ndarray of int64, shape (p,)
-        The leaf's flat index (x fastest) in the box of leaf indices that holds every
-        pair's leaf; cells ascend as packed keys do.
-    origin, extent : tuple of int, length d
-        That box's lowest leaf index and its size, per axis.
-    """
-    side, halo, d = grid.side, grid.halo_voxels, grid.dim
-    box = side + 2 * halo
-    n_leaf = 1 << grid.leaf_depth
-    cols = [np.ascontiguousarray(voxel_keys[:, a]) for a in range(d)]
-    lo = [(c - halo) // side for c in cols]  # the lower leaf per axis
-    # per axis: whether the lower and the upper leaf (lo + 1) hold the voxel in their halo
-    has = [
-        ((q >= 0) & (q < n_leaf), ((c + halo) // side > q) & (q + 1 < n_leaf))
-        for c, q in zip(cols, lo, strict=True)
-    ]
-    origin = tuple(int(q.min()) if q.size else 0 for q in lo)
-    extent = tuple(int(q.max()) - o + 2 if q.size else 1 for q, o in zip(lo, origin, strict=True))
-    stride = np.cumprod((1, *extent[:-1])).tolist()
-    vox_parts, leaf_parts, flat_parts, cell_parts = [], [], [], []
-    for offset in itertools.product((0, 1), repeat=d):  # 4 or 8 neighbours
-        ok = has[0][offset[0]]
-        for a in range(1, d):
-            ok = ok & has[a][offset[a]]
-        v = np.flatnonzero(ok)
-        packed = np.zeros(v.size, dtype=np.int64)
-        flat = np.zeros(v.size, dtype=np.int64)
-        cell = np.zeros(v.size, dtype=np.int64)
-        for a in range(d):  # per axis: the leaf index, packed, its cell and the offset in it
-            leaf = lo[a][v] + offset[a]
-            packed |= leaf << (KEY_BITS * a)
-            cell += (leaf - origin[a]) * stride[a]
-            flat += (cols[a][v] - (leaf * side - halo)) * box**a
-        vox_parts.append(v)
-        leaf_parts.append(packed)
-        flat_parts.append(flat)
-        cell_parts.append(cell)
-    parts = (vox_parts, leaf_parts, flat_parts, cell_parts)
-    voxel, leaf_key, flat, cell = (np.concatenate(p) for p in parts)
-    return voxel, leaf_key, flat, cell, origin, extent
+    return halo_pairs(obs.keys, grid)[:3]
 
 
 def _touched_leaves(
@@ -224,7 +161,8 @@ def _touched_leaves(
     Parameters
     ----------
     leaf_key, cell : ndarray of int64, shape (p,)
-        Each pair's leaf: its packed key and its cell (:func:`_halo_pairs`).
+        Each pair's leaf: its packed key and its cell
+        (:func:`octolgp.engines.known.halo_pairs`).
     origin, extent : tuple of int, length d
         The box of the cells.
 
@@ -429,7 +367,7 @@ def gather_observations(
     voxel_keys = obs.keys
     if swept is not None and swept.size:
         voxel_keys = np.concatenate([obs.keys, unpack_keys(swept, grid.dim)])
-    voxel, leaf_key, flat, cell, origin, extent = _halo_pairs(voxel_keys, grid)
+    voxel, leaf_key, flat, cell, origin, extent = halo_pairs(voxel_keys, grid)
     touched, inverse = _touched_leaves(leaf_key, cell, origin, extent)
     swept_pairs = None
     if voxel_keys is not obs.keys:  # the swept voxels' pairs apart
@@ -977,7 +915,8 @@ def observed_near(
 ) -> NDArray[np.bool_]:
     """Whether each leaf voxel has an observed or swept voxel within ``fill`` voxels.
 
-    Within ``fill`` voxels along every axis: a cube of edge ``2 fill + 1``.
+    Within ``fill`` voxels along every axis: a cube of edge ``2 fill + 1``
+    (:func:`octolgp.engines.known.seen_near` of the voxels with counts or swept).
 
     Parameters
     ----------
@@ -995,19 +934,10 @@ def observed_near(
     ndarray of bool, shape (n, V)
         Per leaf, in its voxel order (x fastest).
     """
-    n, d, side, halo = stored.shape[0], grid.dim, grid.side, grid.halo_voxels
-    box = side + 2 * halo
     known = (stored[:, 0] | stored[:, 1]) > 0
     if swept is not None:
         known |= swept
-    seen = known.astype(np.uint8).reshape((n,) + (box,) * d)
-    if fill > 0:
-        seen = ndimage.maximum_filter(
-            seen, size=(1,) + (2 * fill + 1,) * d, mode="constant", cval=0
-        )
-    inner = seen[(slice(None),) + (slice(halo, halo + side),) * d]
-    out: NDArray[np.bool_] = inner.reshape(n, -1) > 0
-    return out
+    return seen_near(known, grid, fill)
 
 
 class LatticeEngine:
