@@ -325,9 +325,11 @@ class OnlineConfig:
         much slower in 3D (``BENCHMARKS.md``, "Lattice engine").
     leaf_depth : int or None
         OctoMap tree depth of the leaves; a leaf spans ``2**(tree_depth - leaf_depth)``
-        voxels per axis. ``None`` (default): 16 × 16 voxels in 2D and 8 × 8 × 8 in 3D
-        (the lattice engine fits a leaf in tiles of 4 voxels a side, whose GP is cheaper
-        per voxel: ``LatticeConfig.tile_voxels``).
+        voxels per axis. ``None`` (default): 16 × 16 voxels in 2D, 16³ in 3D with the
+        lattice engine and 8³ with the exact one (the lattice engine fits a leaf in tiles
+        of 4 voxels a side, whose GP is cheaper per voxel: ``LatticeConfig.tile_voxels``;
+        its leaf is the unit of per-scan bookkeeping, so a large leaf makes a scan's
+        insert cheaper for the same values).
     halo : float or None
         Overlap margin around each leaf as a fraction of its edge, in ``[0, 0.5)`` (of
         its tiles' edge where the lattice engine fits a leaf in smaller tiles, rounded
@@ -364,7 +366,7 @@ class OnlineConfig:
         occupied to one value, its least confident (OctoMap-style pruning at its clamping
         bounds): less memory, but every voxel of the leaf then reads that value, which
         flattens the ranking of confident voxels. ``None`` (default): on, except for the
-        3D lattice engine, whose leaves of 8³ voxels would lose too much (held-out AUC of
+        3D lattice engine, whose large leaves would lose too much (with leaves of 8³, held-out AUC of
         the KITTI fixture 0.981 → 0.919, the sparse street 0.985 → 0.962; BENCHMARKS.md,
         "Live 3D, second part") for about 40 % more leaf memory.
     defer_fit : bool
@@ -500,7 +502,7 @@ class LatticeConfig:
         per voxel: the map's values are those of leaves the size of a tile, with fewer
         leaves to keep, and a step refits only the tiles whose halo boxes saw a change. A
         power of two up to the leaf's edge. ``None`` (default): 4 (16 tiles a 2D leaf of
-        16 × 16, 8 a 3D leaf of 8³).
+        16 × 16, 64 a 3D leaf of 16³).
     min_inducing_per_axis : int or None
         Fewest lattice points per axis whatever the length scale (a long length scale
         does not make the posterior smooth where the noise is small: a coarse lattice
@@ -630,7 +632,7 @@ gives the default ``min_inducing_per_axis`` (see :class:`LatticeConfig`)."""
 
 
 LEAF_VOXELS_LOG2 = MappingProxyType(
-    {(2, "lattice"): 4, (2, "exact"): 4, (3, "lattice"): 3, (3, "exact"): 3}
+    {(2, "lattice"): 4, (2, "exact"): 4, (3, "lattice"): 4, (3, "exact"): 3}
 )
 """The default leaf edge, log2 of voxels, per (dimension, engine) (see :class:`OnlineConfig`)."""
 

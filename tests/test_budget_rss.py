@@ -102,3 +102,26 @@ def test_the_budget_keeps_room_for_the_largest_recent_step() -> None:
     with OnlineMap(MapConfig(dim=3, resolution=0.2, hyperparameters=hp)) as free:
         free.insert_scan(mission.scan(0).downsample(0.2))
         assert free.store.reserve_bytes == 0  # no budget, nothing kept free
+
+
+@pytest.mark.parametrize("leaf_voxels", [256, 512, 4096, 32768])
+@pytest.mark.parametrize("budget", [None, 1_000_000, 32_000_000, 4_000_000_000])
+def test_a_fit_batch_holds_the_same_working_set_whatever_the_leaf_size(
+    leaf_voxels: int, budget: int | None
+) -> None:
+    """Batches count leaves of 8³ voxels: a larger leaf counts as several, so the bytes a
+    batch's fit holds stay an eighth of the budget (above a floor of 16 small leaves or
+    one leaf)."""
+    from octolgp.mapping.store import FIT_BYTES_PER_LEAF, READ_BATCH, UNIT_LEAF_VOXELS, LeafStore
+
+    store = LeafStore(budget, leaf_voxels)
+    units = max(1, leaf_voxels // UNIT_LEAF_VOXELS)
+    assert store.units == units
+    small = LeafStore(budget).batch  # the same budget's batch of 8³ leaves
+    assert store.batch == max(small // units, 1)
+    working = store.batch * units * FIT_BYTES_PER_LEAF
+    if budget is None:
+        assert small == READ_BATCH
+    else:
+        floor = max(16, units) * FIT_BYTES_PER_LEAF  # 16 small leaves, or one leaf
+        assert working <= max(budget // 8, floor)

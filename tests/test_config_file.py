@@ -109,7 +109,7 @@ def test_dump_config_defaults_file_and_flags(
     assert main(["dump-config"]) == 0
     dumped = tomllib.loads(capsys.readouterr().out)
     assert MapConfig.from_dict(dumped) == MapConfig().resolve()
-    assert dumped["online"]["leaf_depth"] == 13  # every derived default, filled in
+    assert dumped["online"]["leaf_depth"] == 12  # every derived default, filled in
     assert dumped["lattice"]["tile_voxels"] == 4
     assert dumped["lattice"]["clear_margin"] == pytest.approx(0.5)
     path = _write(tmp_path / "c.toml", FILE)

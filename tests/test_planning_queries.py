@@ -94,7 +94,7 @@ def test_raycast_matches_dense_sampling_of_occupancy(
     any_map: OnlineMap, unknown: str, march: str
 ) -> None:
     m = any_map
-    o, u = rays(m, 40, seed=1)
+    o, u = rays(m, 60, seed=1)
     max_range = 6.0 if m.config.dim == 2 else 8.0
     got = m.raycast(o, u, max_range, unknown=unknown)
     want = dense_first_event(m, o, u, max_range, unknown)

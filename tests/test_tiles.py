@@ -46,7 +46,7 @@ def _room(n: int) -> list:
 def test_the_default_leaves_hold_tiles_of_four() -> None:
     config = _config(None, True).resolve()
     grid = LeafGrid.from_config(config)
-    assert (grid.side, config.tile_voxels, grid.halo_voxels) == (8, 4, 1)
+    assert (grid.side, config.tile_voxels, grid.halo_voxels) == (16, 4, 1)
     config = MapConfig(dim=2, resolution=0.1).resolve()
     grid = LeafGrid.from_config(config)
     assert (grid.side, config.tile_voxels, grid.halo_voxels) == (16, 4, 2)
@@ -168,7 +168,7 @@ def test_tile_returns_match_a_tile_by_tile_split() -> None:
     ("tile", "leaf_depth", "match"),
     [
         (3, None, "tile_voxels must be a power of two"),
-        (16, None, "at most the leaf's edge"),
+        (32, None, "at most the leaf's edge"),
         (0, None, "tile_voxels"),
     ],
 )

@@ -101,8 +101,9 @@ RESERVE_STEPS = 16
 """Steps whose largest the memory budget keeps room for (:meth:`OnlineMap._reserve`)."""
 
 FIT_CHUNK = 2048
-"""Leaves the engine fits per call: a step's or a settle's leaves are fitted in chunks
-of this many, whose stacked counts, returns and values stay small enough for the caches
+"""Leaves of 8³ voxels the engine fits per call (a larger leaf counts as several,
+:attr:`~octolgp.mapping.store.LeafStore.units`): a step's or a settle's leaves are fitted
+in chunks of this many, whose stacked counts, returns and values stay small enough for the caches
 (a sparse street's 32,000 pending leaves fitted at once took twice as long)."""
 
 R = TypeVar("R")
@@ -216,7 +217,9 @@ class OnlineMap(MapReads):
         self.grid = LeafGrid.from_config(self.config)
         self.engine = engine_for(self.config)
         budget = self.config.memory_budget_mb
-        self.store = LeafStore(None if budget is None else int(budget * 1e6))
+        self.store = LeafStore(
+            None if budget is None else int(budget * 1e6), self.grid.voxels_per_leaf
+        )
         self.hyperparameters: Hyperparameters | None = self.config.hyperparameters
         self.n_scans = 0
         self.repaired = 0  # kernel matrices repaired by jitter in this map's fits
@@ -1231,7 +1234,9 @@ class OnlineMap(MapReads):
         Under a memory budget the store's batch, so that a fit's working set stays
         within a share of the budget.
         """
-        return FIT_CHUNK if self.store.budget_bytes is None else self.store.batch
+        if self.store.budget_bytes is None:
+            return max(FIT_CHUNK // self.store.units, 1)
+        return self.store.batch
 
     def _update(
         self,

@@ -181,9 +181,13 @@ measured with ``tracemalloc``), which a budget keeps free of leaves
 (:attr:`LeafStore.reserve_bytes`)."""
 
 FIT_BYTES_PER_LEAF = 54_000
-"""About the bytes fitting one leaf holds while it runs (a 3D lattice leaf: its tiles'
-counts, returns and posteriors; measured), which sizes :attr:`LeafStore.batch` under a
-budget."""
+"""About the bytes fitting one leaf of :data:`UNIT_LEAF_VOXELS` voxels holds while it runs
+(a 3D lattice leaf of 8³: its tiles' counts, returns and posteriors; measured), which sizes
+:attr:`LeafStore.batch` under a budget; a larger leaf holds proportionally more."""
+
+UNIT_LEAF_VOXELS = 512
+"""The leaf size the store's working-set constants are measured for (8³ voxels): a leaf of
+``n`` voxels counts as ``max(1, n // UNIT_LEAF_VOXELS)`` such leaves (:attr:`LeafStore.units`)."""
 
 
 class LeafBacking(Protocol):
@@ -319,7 +323,9 @@ class LeafStore:
     in the file (``persisted``).
     """
 
-    def __init__(self, budget_bytes: int | None = None) -> None:
+    def __init__(
+        self, budget_bytes: int | None = None, leaf_voxels: int = UNIT_LEAF_VOXELS
+    ) -> None:
         self._leaves: OrderedDict[int, Leaf] = OrderedDict()  # in RAM, LRU first
         self._keys: set[int] = set()  # every key, in RAM or in the file
         self._dirty: set[int] = set()  # in RAM and not yet in the file
@@ -327,6 +333,7 @@ class LeafStore:
         self._pending: set[int] = set()  # leaves whose values wait for a fit
         self._nbytes = 0
         self.budget_bytes = budget_bytes
+        self.units = max(1, leaf_voxels // UNIT_LEAF_VOXELS)  # working-set units a leaf
         self.reserve_bytes = 0  # of the budget, kept free for a step's working arrays
         self.backing: LeafBacking | None = None
         self._fit: Callable[[list[Leaf]], list[Leaf]] | None = None
@@ -381,12 +388,14 @@ class LeafStore:
     def batch(self) -> int:
         """Leaves read or fitted together: :data:`READ_BATCH`, or under a budget fewer.
 
-        Under a budget at least 16, and so many that fitting them holds at most an
-        eighth of the budget.
+        Counted in leaves of :data:`UNIT_LEAF_VOXELS` voxels (a larger leaf counts as
+        :attr:`units` of them). Under a budget at least 16 such leaves (and one leaf), and
+        so many that fitting them holds at most an eighth of the budget.
         """
         if self.budget_bytes is None:
-            return READ_BATCH
-        return max(16, min(READ_BATCH, self.budget_bytes // (8 * FIT_BYTES_PER_LEAF)))
+            return max(READ_BATCH // self.units, 1)
+        fit = self.budget_bytes // (8 * FIT_BYTES_PER_LEAF)
+        return max(max(16, min(READ_BATCH, fit)) // self.units, 1)
 
     def peek_many(self, keys: list[int]) -> list[Leaf | None]:
         """:meth:`peek` of many leaves: the evicted ones read and fitted together.
