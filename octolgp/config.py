@@ -368,8 +368,7 @@ class OnlineConfig:
         flattens the ranking of confident voxels. ``None`` (default): on, except for the
         3D lattice engine, whose large leaves would lose too much (with leaves of 8³,
         held-out AUC of the KITTI fixture 0.981 → 0.919, the sparse street 0.985 → 0.962;
-        BENCHMARKS.md,
-        "Live 3D, second part") for about 40 % more leaf memory.
+        BENCHMARKS.md, "Live 3D, second part") for about 40 % more leaf memory.
     defer_fit : bool
         Fit the leaves a scan changes when the map is next read (a query, an export, a
         save, :meth:`OnlineMap.settle <octolgp.OnlineMap.settle>`) rather than in
