@@ -8,8 +8,8 @@ the GP's value (elsewhere it holds NaN and reads unknown). Each engine keeps, pe
 which voxels of its halo box are seen (the lattice engine in its counts and swept
 bitmap, the exact engine in a seen mask); :func:`halo_pairs` scatters a step's seen
 voxels into the leaves whose halo boxes hold them (:func:`near_leaf`: those that can make
-a voxel of the leaf known), :func:`grow_seen` merges them into the leaves' masks, and :func:`seen_near` gives the known voxels of leaves from their
-masks. ``fill_voxels`` is at most the leaf's halo in voxels, so a leaf's halo box holds
+a voxel of the leaf known), :func:`grow_seen` merges them into the leaves' masks, and
+:func:`seen_near` gives the known voxels of leaves from their masks. ``fill_voxels`` is at most the leaf's halo in voxels, so a leaf's halo box holds
 every seen voxel that counts for its voxels.
 """
 

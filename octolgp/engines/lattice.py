@@ -39,7 +39,7 @@ from octolgp.engines.base import (
     read_arrays,
     stage,
 )
-from octolgp.engines.known import halo_pairs, seen_near
+from octolgp.engines.known import grow_seen, halo_pairs, seen_near
 from octolgp.engines.lattice_record import (
     decode_lattice_swept,
     encode_lattice,
@@ -511,12 +511,10 @@ def _sweep_leaves(
             old = lattice_evidence(leaf).swept
             if old.size == n_halo:
                 before[row] = old
-    after = before.copy()
-    after[rank, flat] = True
-    new = after & ~before
-    grown = np.flatnonzero(new.any(axis=1))
-    rows, cols = np.nonzero(new)
-    return {int(js[r]): after[r].copy() for r in grown.tolist()}, (js[rows], cols)
+    after, grew = grow_seen(before, rank, flat)
+    rows, cols = np.nonzero(after & ~before)
+    grown = np.flatnonzero(grew).tolist()
+    return {int(js[r]): after[r].copy() for r in grown}, (js[rows], cols)
 
 
 def _stale_tiles(

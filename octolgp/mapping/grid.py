@@ -2,8 +2,8 @@
 
 The map is cut into *leaves*: the nodes of the OctoMap key tree at depth
 ``leaf_depth``. A leaf spans ``2**(tree_depth - leaf_depth)`` voxels per axis (16 × 16
-in 2D, 16³ in 3D with the lattice engine and 8³ with the exact one, by default); its index per axis is the voxel key shifted
-right by ``tree_depth - leaf_depth`` bits, so leaf indices are OctoMap keys of a
+in 2D, 16³ in 3D with the lattice engine and 8³ with the exact one, by default); its
+index per axis is the voxel key shifted right by ``tree_depth - leaf_depth`` bits, so leaf indices are OctoMap keys of a
 coarser tree and pack the same way (:func:`octolgp.geometry.keys.pack_keys`).
 
 A leaf's *halo box* is its box grown by ``halo`` times its edge on every side. A leaf

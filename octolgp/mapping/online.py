@@ -102,9 +102,10 @@ RESERVE_STEPS = 16
 
 FIT_CHUNK = 2048
 """Leaves of 8³ voxels the engine fits per call (a larger leaf counts as several,
-:attr:`~octolgp.mapping.store.LeafStore.units`): a step's or a settle's leaves are fitted
-in chunks of this many, whose stacked counts, returns and values stay small enough for the caches
-(a sparse street's 32,000 pending leaves fitted at once took twice as long)."""
+:meth:`~octolgp.mapping.store.LeafStore.leaves_of`): a step's or a settle's leaves are
+fitted in chunks of this many, whose stacked counts, returns and values stay small enough
+for the caches (a sparse street's 32,000 pending leaves fitted at once took twice as
+long)."""
 
 R = TypeVar("R")
 
@@ -1235,7 +1236,7 @@ class OnlineMap(MapReads):
         within a share of the budget.
         """
         if self.store.budget_bytes is None:
-            return max(FIT_CHUNK // self.store.units, 1)
+            return self.store.leaves_of(FIT_CHUNK)
         return self.store.batch
 
     def _update(

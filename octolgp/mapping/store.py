@@ -187,7 +187,8 @@ FIT_BYTES_PER_LEAF = 54_000
 
 UNIT_LEAF_VOXELS = 512
 """The leaf size the store's working-set constants are measured for (8³ voxels): a leaf of
-``n`` voxels counts as ``max(1, n // UNIT_LEAF_VOXELS)`` such leaves (:attr:`LeafStore.units`)."""
+``n`` voxels counts as ``max(1, n // UNIT_LEAF_VOXELS)`` such leaves
+(:attr:`LeafStore.units`)."""
 
 
 class LeafBacking(Protocol):
@@ -393,9 +394,16 @@ class LeafStore:
         so many that fitting them holds at most an eighth of the budget.
         """
         if self.budget_bytes is None:
-            return max(READ_BATCH // self.units, 1)
+            return self.leaves_of(READ_BATCH)
         fit = self.budget_bytes // (8 * FIT_BYTES_PER_LEAF)
-        return max(max(16, min(READ_BATCH, fit)) // self.units, 1)
+        return self.leaves_of(max(16, min(READ_BATCH, fit)))
+
+    def leaves_of(self, unit_leaves: int) -> int:
+        """Leaves of this store (at least one) worth ``unit_leaves`` leaves of 8³ voxels.
+
+        Each leaf counts as :attr:`units` leaves of :data:`UNIT_LEAF_VOXELS` voxels.
+        """
+        return max(unit_leaves // self.units, 1)
 
     def peek_many(self, keys: list[int]) -> list[Leaf | None]:
         """:meth:`peek` of many leaves: the evicted ones read and fitted together.
