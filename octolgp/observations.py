@@ -48,14 +48,14 @@ from octolgp.geometry.keys import (
     unpack_keys,
 )
 from octolgp.scan import Scan
-from octolgp.training import IntArray, check_scans, config_beams, stack_beams
+from octolgp.training import Beams, IntArray, check_scans, config_beams, stack_beams
 
 BLOCK_VOXELS = 1 << 18
 """Voxels of free segments (their origins' and one per border crossing) handled at once
 (bounds the transient arrays)."""
 
 DENSE_CELLS = 1 << 25
-"""Most cells of the per-scan key boxes deduplicated in a dense map (two bytes each)
+"""Most cells of the per-scan key boxes deduplicated in a dense map (a byte each)
 rather than by sorting."""
 
 DENSE_PER_VOXEL = 64
@@ -63,6 +63,9 @@ DENSE_PER_VOXEL = 64
 
 TIE_BAND = 1e-7
 """Distance, in voxels, from a border within which a crossing's order is decided exactly."""
+
+HIT = 4
+"""Bit of :func:`_observe_one`'s map: a return in the voxel (above the walk's bits)."""
 
 MAX_SCANS = 1 << 12
 """Scans whose observations are deduplicated in one pass (the scan number shares an
@@ -367,13 +370,12 @@ def _free_codes(
     ]
     n_c, frac_c, du_c, size_c, gap_c, move_c = columns
     stride_c = [np.ascontiguousarray(stride[:, a]).astype(float) for a in range(dim)]
-    far_map = np.zeros(int(cells.sum()) if dense else 0, dtype=bool)
-    near_map = np.zeros(far_map.size if near is not None else 0, dtype=bool)
+    if compiled is None:
+        compiled = ray_kernel.AVAILABLE
+    state = ray_kernel.state_map(int(cells.sum()) if dense else 0)
     parts: list[IntArray] = []
     near_parts: list[IntArray] = []
     ends = np.cumsum(per_seg)
-    if compiled is None:
-        compiled = ray_kernel.AVAILABLE
     if compiled:
         move = step * stride
         size = np.abs(du)
@@ -391,8 +393,7 @@ def _free_codes(
                 gap[s],
                 size[s],
                 enter[s],
-                far_map if dense else None,
-                near_map if dense else None,
+                state if dense else None,
             )
             if not dense:
                 if region is not None:
@@ -432,24 +433,25 @@ def _free_codes(
             idx = idx[wanted]
         if near is not None:
             if dense:
-                near_map[idx[is_near]] = True
+                state[idx[is_near]] |= ray_kernel.NEAR
             else:
                 near_parts.append(sorted_unique(idx[is_near]))
             idx = idx[~is_near]
         if dense:
-            far_map[idx] = True
+            state[idx] |= ray_kernel.FAR
         else:
             parts.append(sorted_unique(idx))
         lo = hi
     if dense:
-        cell = np.flatnonzero(far_map | near_map if near is not None else far_map)
+        visits = int(per_seg.sum())
+        cell = ray_kernel.marked_cells(state, visits) if compiled else np.flatnonzero(state != 0)
         codes = _box_codes(cell, base, box_stride, low, scans, dim)
         if region is not None:
             marked = region.contains(codes)
             cell, codes = cell[marked], codes[marked]
         if near is None:
             return codes, none
-        return codes, codes[near_map[cell] & ~far_map[cell]]
+        return codes, codes[state[cell] == ray_kernel.NEAR]
     far = merge_unique(*parts)
     if near is None:
         return far, none
@@ -459,7 +461,11 @@ def _free_codes(
 
 
 def observe(
-    scans: Iterable[Scan], config: MapConfig, region: KeyRegion | None = None
+    scans: Iterable[Scan],
+    config: MapConfig,
+    region: KeyRegion | None = None,
+    *,
+    compiled: bool | None = None,
 ) -> VoxelObservations:
     """Count, per voxel, the scans that saw it occupied and the scans that saw it free.
 
@@ -473,6 +479,11 @@ def observe(
     region : KeyRegion, optional
         Observe only the voxels in it: the result is the whole one's voxels in the
         region, exactly (every count is per voxel). All voxels where ``None``.
+    compiled : bool, optional
+        Walk the free segments with the compiled loop, and observe one scan (without a
+        region) in one pass over a map of its voxels (:func:`_observe_one`); or do it
+        all with numpy. By default compiled where numba imports. Both give the same
+        observations.
 
     Returns
     -------
@@ -486,14 +497,20 @@ def observe(
     scan_list = check_scans(scans, config.dim)
     if len(scan_list) > MAX_SCANS:
         parts = [
-            observe(scan_list[lo : lo + MAX_SCANS], config, region)
+            observe(scan_list[lo : lo + MAX_SCANS], config, region, compiled=compiled)
             for lo in range(0, len(scan_list), MAX_SCANS)
         ]
         return merge_observations(parts, config.dim)
     dim, res, depth = config.dim, config.resolution, config.tree_depth
     origins, ends, max_range = stack_beams(scan_list)
-    scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
     beams = config_beams(origins, ends, max_range, config)
+    if compiled is None:
+        compiled = ray_kernel.AVAILABLE
+    if compiled and len(scan_list) == 1 and region is None:
+        single = _observe_one(origins, ends, beams, config)
+        if single is not None:
+            return single
+    scan = np.repeat(np.arange(len(scan_list), dtype=np.int64), [len(s) for s in scan_list])
     returns, hit_scan = ends[beams.is_hit], scan[beams.is_hit]
     hit_keys = _voxel_keys(returns, res, depth)
     hit_packed = pack_keys(hit_keys)
@@ -520,7 +537,14 @@ def observe(
     margin = max(config.clear_margin - config.free_margin, 0.0)  # from the segment's end
     near = np.where(beams.is_hit[seg], margin, np.inf) if k else None
     free_codes, weak_codes = _free_codes(
-        origins[seg], beams.free_end[seg], scan[seg], res, depth, near, region=region
+        origins[seg],
+        beams.free_end[seg],
+        scan[seg],
+        res,
+        depth,
+        near,
+        compiled=compiled,
+        region=region,
     )
     free_codes = free_codes[~sorted_contains(hit_codes, free_codes)]  # both ascending
     weak_codes = weak_codes[~sorted_contains(hit_codes, weak_codes)]
@@ -543,6 +567,91 @@ def observe(
         return one_scan_summary(obs, k)
     strong = free_codes[~sorted_contains(weak_codes, free_codes)]
     return _summarise(obs, hit_codes, code_points, strong, k)
+
+
+def _observe_one(
+    origins: np.ndarray, ends: np.ndarray, beams: Beams, config: MapConfig
+) -> VoxelObservations | None:
+    """One scan's observations from one map over the box of its voxels (compiled walk).
+
+    The returns' voxels and those the free segments pass through are marked in one
+    byte per cell of the box of keys holding them (:data:`HIT`, and the walk's
+    ``ray_kernel.FAR`` and ``ray_kernel.NEAR``), and each voxel's counts are read off
+    its byte: in one scan a voxel is seen occupied (a return in it) or free (a segment
+    through it, weakly where only near its return), never both. This is
+    :func:`observe`'s general path for one scan, without its sorts and searches.
+
+    Parameters
+    ----------
+    origins, ends : ndarray of shape (b, d)
+        The scan's beams, world frame, metres (addressable).
+    beams : Beams
+        ``config_beams`` of them.
+    config : MapConfig
+
+    Returns
+    -------
+    VoxelObservations or None
+        ``None`` where the box has more cells than a dense map may
+        (``DENSE_CELLS``, ``DENSE_PER_VOXEL``): the general path serves.
+    """
+    dim, res, depth = config.dim, config.resolution, config.tree_depth
+    offset = 1 << (depth - 1)
+    returns = ends[beams.is_hit]
+    hit_keys = _voxel_keys(returns, res, depth)
+    seg = beams.has_seg
+    start_pt, end_pt = origins[seg], beams.free_end[seg]
+    u0 = start_pt / res  # as _free_codes computes them, so the walk is the same
+    k0 = np.floor(u0)
+    k1 = np.floor(end_pt / res)
+    du = end_pt / res - u0
+    crossings = np.abs(k1 - k0).astype(np.int64)
+    key0 = k0.astype(np.int64) + offset
+    corners = np.concatenate([key0, k1.astype(np.int64) + offset, hit_keys])
+    if corners.shape[0] == 0:
+        return None
+    low, high = corners.min(axis=0), corners.max(axis=0)
+    extent = high - low + 1
+    cells = int(np.prod(extent))
+    visits = int(crossings.sum()) + crossings.shape[0] + hit_keys.shape[0]
+    if cells > min(DENSE_CELLS, DENSE_PER_VOXEL * visits):
+        return None
+    stride = np.cumprod(np.r_[1, extent[:-1]])
+    frac = u0 - k0
+    gap = np.where(du < 0, 1.0 - frac, frac)
+    move = np.where(du < 0, -stride, stride)
+    enter = np.full(key0.shape[0], np.inf)
+    k = config.clear_scans
+    if k:  # weak: within clear_margin of the return, or anywhere on a no-return beam
+        margin = max(config.clear_margin - config.free_margin, 0.0)
+        near = np.where(beams.is_hit[seg], margin, np.inf)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            enter = 1.0 - near / np.linalg.norm(end_pt - start_pt, axis=1)
+    state = ray_kernel.state_map(cells)
+    start = (key0 - low) @ stride
+    ray_kernel.walk_segments(start, move, crossings, gap, np.abs(du), enter, state)
+    hit_cell = (hit_keys - low) @ stride
+    state[hit_cell] |= HIT
+    cell = ray_kernel.marked_cells(state, visits)
+    mark = state[cell]
+    keys = np.empty((cell.size, dim), dtype=np.int64)
+    for a in range(dim):  # cells ascend as packed keys do (x fastest)
+        keys[:, a] = cell // stride[a] % extent[a] + low[a]
+    hit = mark >= HIT
+    free = ~hit
+    hits, frees = hit.astype(np.int64), free.astype(np.int64)
+    first_hit = np.full((cell.size, dim), np.nan)
+    if hit_cell.size:  # the first return per voxel, in beam order, at the file's precision
+        points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
+        order = np.argsort(hit_cell, kind="stable")
+        ordered = hit_cell[order]
+        first = order[np.r_[True, ordered[1:] != ordered[:-1]]]
+        first_hit[np.searchsorted(cell, hit_cell[first])] = points[first]
+    if not k:
+        return _without_forgetting(keys, hits, frees, first_hit)
+    weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
+    obs = _without_forgetting(keys, hits, frees, first_hit)
+    return one_scan_summary(dataclasses.replace(obs, weak_frees=weak), k)
 
 
 def one_scan_summary(obs: VoxelObservations, clear_scans: int) -> VoxelObservations:

@@ -8,6 +8,7 @@ face-connected path of voxels that each touch the segment.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -19,8 +20,8 @@ from octolgp import MapConfig, Scan, observations
 from octolgp.config import OnlineConfig, TrainingConfig
 from octolgp.geometry.keys import KEY_BITS, pack_keys
 from octolgp.geometry.raycast import traverse_voxels
-from octolgp.observations import _free_codes, observe
-from octolgp.training import split_beams, stack_beams
+from octolgp.observations import _free_codes, _observe_one, observe
+from octolgp.training import config_beams, split_beams, stack_beams
 
 RESOLUTION = {2: 0.1, 3: 0.2}
 OFFSET = 1 << 15  # tree depth 16
@@ -100,11 +101,31 @@ def test_free_codes_are_the_traversal_and_the_end_voxel(dim: int, n: int, dedup:
     assert codes.size == crossed + n
 
 
+def _random_scans(
+    rng: np.random.Generator, n_scans: int, dim: int, reach: float = 80.0
+) -> list[Scan]:
+    """Scans of 150 random beams each: returns from 1 cm to ``reach``, ten no-returns."""
+    scans = []
+    for _ in range(n_scans):
+        origin, ends = _rays(rng, 150, dim)
+        origin = origin[0]
+        direction = ends - ends.mean(axis=0)
+        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+        r = np.exp(rng.uniform(np.log(0.01), np.log(reach), 150))
+        r[:10] = reach  # no-returns at max_range
+        scans.append(Scan(origin=origin, points=origin + r[:, None] * direction, max_range=reach))
+    return scans
+
+
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("clear_scans", [0, 4])
-def test_observe_sees_free_every_voxel_a_segment_passes_through(dim: int, clear_scans: int) -> None:
+@pytest.mark.parametrize("n_scans", [1, 4])
+def test_observe_sees_free_every_voxel_a_segment_passes_through(
+    dim: int, clear_scans: int, n_scans: int
+) -> None:
     """Scans of random beams (returns and no-returns up to 80 m): per voxel, the scans whose
-    segments' traversal or end voxel holds it, without a return of the scan there."""
+    segments' traversal or end voxel holds it, without a return of the scan there. One
+    scan takes observe's one-pass path, several its general one."""
     res = RESOLUTION[dim]
     rng = np.random.default_rng(10 + dim)
     config = MapConfig(
@@ -113,15 +134,7 @@ def test_observe_sees_free_every_voxel_a_segment_passes_through(dim: int, clear_
         online=OnlineConfig(clear_scans=clear_scans),
         training=TrainingConfig(no_return_range=math.inf),  # every no-return whole
     )
-    scans = []
-    for _ in range(4):
-        origin, ends = _rays(rng, 150, dim)
-        origin = origin[0]
-        direction = ends - ends.mean(axis=0)
-        direction /= np.linalg.norm(direction, axis=1, keepdims=True)
-        r = np.exp(rng.uniform(np.log(0.01), np.log(80.0), 150))
-        r[:10] = 80.0  # no-returns at max_range
-        scans.append(Scan(origin=origin, points=origin + r[:, None] * direction, max_range=80.0))
+    scans = _random_scans(rng, n_scans, dim)
     obs = observe(scans, config)
     origins, ends, max_range = stack_beams(scans)
     beams = split_beams(origins, ends, max_range, config.free_margin)
@@ -279,3 +292,56 @@ def test_the_compiled_walk_gives_the_numpy_codes(dim: int, dedup: str) -> None:
             np.testing.assert_array_equal(out[0], ref[0])
             np.testing.assert_array_equal(out[1], ref[1])
             assert ref[0].size > n
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("clear_scans", [0, 4])
+def test_one_scan_in_one_pass_gives_the_general_observations(
+    dim: int, clear_scans: int, dedup: str
+) -> None:
+    """observe's one-pass path for one scan (a map of its voxels, compiled walk) against its
+    general numpy path: every field equal, first returns bit for bit (NaN where none).
+    Sorted: the box is refused a map, and the general path serves both."""
+    if not observations.ray_kernel.AVAILABLE:
+        pytest.skip("numba is not installed")
+    res = RESOLUTION[dim]
+    rng = np.random.default_rng(50 + dim)
+    config = MapConfig(
+        dim=dim,
+        resolution=res,
+        online=OnlineConfig(clear_scans=clear_scans),
+        training=TrainingConfig(no_return_range=math.inf),
+    )
+    scans = _random_scans(rng, 2, dim) + _random_scans(rng, 2, dim, reach=8.0)
+    grid = Scan(origin=np.zeros(dim), points=rng.integers(-40, 40, (200, dim)) * res / 4)
+    one_pass = 0
+    for scan in [*scans, grid]:  # beams through voxel edges and corners too
+        origins, ends, max_range = stack_beams([scan])
+        beams = config_beams(origins, ends, max_range, config)
+        one_pass += _observe_one(origins, ends, beams, config) is not None
+        fast = observe([scan], config)
+        ref = observe([scan], config, compiled=False)
+        for field in dataclasses.fields(ref):
+            a, b = getattr(fast, field.name), getattr(ref, field.name)
+            if isinstance(b, np.ndarray):
+                assert a.dtype == b.dtype, field.name
+                np.testing.assert_array_equal(a, b, err_msg=field.name)
+            else:
+                assert a == b, field.name
+        assert ref.n_voxels > len(scan)
+    assert one_pass >= 3 if dedup == "dense" else one_pass == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.integers(0, 999), max_size=80), st.integers(1, 1000), st.integers(1, 7))
+def test_marked_cells_are_the_nonzero_cells(cells: list[int], size: int, bit: int) -> None:
+    """The word-at-a-time scan of a state map lists np.flatnonzero's cells."""
+    if not observations.ray_kernel.AVAILABLE:
+        pytest.skip("numba is not installed")
+    state = observations.ray_kernel.state_map(size)
+    assert state.size % 8 == 0
+    assert state.size >= size
+    at = np.array([c for c in cells if c < size], dtype=np.int64)
+    state[at] |= bit
+    got = observations.ray_kernel.marked_cells(state, max(at.size, 1))
+    np.testing.assert_array_equal(got, np.flatnonzero(state))

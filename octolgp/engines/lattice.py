@@ -318,8 +318,8 @@ def _stored_counts(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint8]:
     if not all(sized):
         rows = list(itertools.compress(rows, sized))
         counts = list(itertools.compress(counts, sized))
-    if rows:
-        out[rows] = _stack(counts)
+    for j, c in zip(rows, counts, strict=True):  # straight into place: no stacked copy
+        out[j] = c
     return out
 
 
@@ -453,7 +453,8 @@ def gather_observations(
     full = grid.voxels_per_leaf
     touched_index = unpack_keys(touched, grid.dim)
     sel = np.flatnonzero(new_counts)
-    for j, row, r in zip(sel.tolist(), counts[sel], refit[sel].tolist(), strict=True):
+    for j, r in zip(sel.tolist(), refit[sel].tolist(), strict=True):
+        row = counts[j]  # a view: the leaf's own array is its copy
         leaf = current[j]  # one iteration per leaf with new counts: arrays of its own
         moved = returns.get(j)
         if leaf is None:

@@ -8,7 +8,10 @@ segment instead, Amanatides & Woo style: the next crossing of each axis is at
 ``t = (i - gap) / |Δu|`` (``i`` its number along the axis, computed directly, never
 accumulated), the segment crosses the nearest one, on ties the last axis first, and
 each voxel it enters is marked. The crossings' ``t`` are the numpy form's own, compared
-the same way, so both give the same voxels (``tests/test_free_traversal.py``). Without
+the same way, so both give the same voxels (``tests/test_free_traversal.py``). Marks go
+into a byte per cell of a dense box of keys (a state map: bits for entered far from and
+near a segment's end, and any the caller adds), and :func:`marked_cells` lists the marked
+cells a word of eight at a time, since most of a box's cells are never entered. Without
 numba (:data:`AVAILABLE` false) the numpy form serves.
 """
 
@@ -22,6 +25,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.scan import FloatArray
+
+FAR = 1
+"""Bit of a dense state map: a segment entered the voxel far from its end."""
+
+NEAR = 2
+"""Bit of a dense state map: a segment entered the voxel near its end."""
 
 AVAILABLE = importlib.util.find_spec("numba") is not None
 """Whether the compiled walk can run (numba is installed; it is imported on first use)."""
@@ -37,8 +46,7 @@ def _walk(
     size: FloatArray,
     enter_near: FloatArray,
     dense: bool,
-    far_map: NDArray[np.bool_],
-    near_map: NDArray[np.bool_],
+    state: NDArray[np.uint8],
     out: IntArray,
     out_near: NDArray[np.bool_],
 ) -> int:  # pragma: no cover - compiled; tested through the compiled form
@@ -59,10 +67,7 @@ def _walk(
         while True:  # the voxel entered at t, then the next crossing
             near = t >= near_from
             if dense:
-                if near:
-                    near_map[idx] = True
-                else:
-                    far_map[idx] = True
+                state[idx] |= NEAR if near else FAR
             else:
                 out[k] = idx
                 out_near[k] = near
@@ -82,13 +87,51 @@ def _walk(
     return k
 
 
+def _nonzero(
+    words: NDArray[np.uint64], state: NDArray[np.uint8], out: IntArray
+) -> int:  # pragma: no cover - compiled; tested through the compiled form
+    """List the nonzero cells of ``state`` (``words`` its view, 8 cells a word) ascending."""
+    k = 0
+    for w in range(words.size):  # most words of a sparse map are zero: skipped whole
+        if words[w] != 0:
+            for c in range(8 * w, 8 * w + 8):
+                if state[c] != 0:
+                    out[k] = c
+                    k += 1
+    return k
+
+
 @functools.cache
-def _compiled() -> Callable[..., int]:
-    """The walk compiled by numba (cached on disk beside the module after the first run)."""
+def _compiled() -> tuple[Callable[..., int], Callable[..., int]]:
+    """The loops compiled by numba (cached on disk beside the module after the first run)."""
     from numba import njit
 
-    out: Callable[..., int] = njit(cache=True, nogil=True)(_walk)
-    return out
+    walk: Callable[..., int] = njit(cache=True, nogil=True)(_walk)
+    nonzero: Callable[..., int] = njit(cache=True, nogil=True)(_nonzero)
+    return walk, nonzero
+
+
+def state_map(cells: int) -> NDArray[np.uint8]:
+    """A zeroed dense state map of ``cells`` cells (padded to whole words of 8)."""
+    return np.zeros(-(-cells // 8) * 8, dtype=np.uint8)
+
+
+def marked_cells(state: NDArray[np.uint8], most: int) -> IntArray:
+    """The cells of a state map (:func:`state_map`) with any bit set, ascending.
+
+    ``np.flatnonzero(state)``, reading the map a word at a time; ``most`` bounds how
+    many there are (the cells the walk visited).
+
+    Raises
+    ------
+    RuntimeError
+        If numba is not available.
+    """
+    if not AVAILABLE:
+        raise RuntimeError("the compiled traversal needs numba")
+    out = np.empty(most, dtype=np.int64)
+    written = _compiled()[1](state.view(np.uint64), state, out)
+    return out[:written]
 
 
 def walk_segments(
@@ -98,8 +141,7 @@ def walk_segments(
     gap: FloatArray,
     size: FloatArray,
     enter_near: FloatArray,
-    far_map: NDArray[np.bool_] | None,
-    near_map: NDArray[np.bool_] | None,
+    state: NDArray[np.uint8] | None,
 ) -> tuple[IntArray, NDArray[np.bool_]]:
     """Walk free segments through their voxels, marking or listing each voxel entered.
 
@@ -117,10 +159,10 @@ def walk_segments(
     enter_near : ndarray of shape (b,)
         A voxel entered at ``t >= enter_near`` is near the segment's end (``inf``:
         none is).
-    far_map, near_map : ndarray of bool, optional
-        Dense maps over the indices: set where a voxel is entered far from / near the
-        segment's end. ``far_map`` ``None``: list the voxels instead; ``near_map`` may
-        be ``None`` when no voxel is near.
+    state : ndarray of uint8, optional
+        A dense map over the indices: each voxel entered gets the bit :data:`FAR` or
+        :data:`NEAR` (entered far from / near its segment's end) or-ed in, the other
+        bits kept. ``None``: list the voxels instead.
 
     Returns
     -------
@@ -137,12 +179,12 @@ def walk_segments(
     if not AVAILABLE:
         raise RuntimeError("the compiled traversal needs numba")
     c = np.ascontiguousarray
-    dense = far_map is not None
+    dense = state is not None
     total = 0 if dense else int(crossings.sum()) + crossings.shape[0]
     out = np.empty(total, dtype=np.int64)
     out_near = np.empty(total, dtype=bool)
-    none = np.zeros(0, dtype=bool)
-    written = _compiled()(
+    none = np.zeros(0, dtype=np.uint8)
+    written = _compiled()[0](
         c(start, dtype=np.int64),
         c(move, dtype=np.int64),
         c(crossings, dtype=np.int64),
@@ -150,8 +192,7 @@ def walk_segments(
         c(size, dtype=np.float64),
         c(enter_near, dtype=np.float64),
         dense,
-        none if far_map is None else far_map,
-        none if near_map is None else near_map,
+        none if state is None else state,
         out,
         out_near,
     )
