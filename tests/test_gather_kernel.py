@@ -10,7 +10,7 @@ import pytest
 from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, Scan
 from octolgp.engines import gather_kernel
 from octolgp.engines.known import halo_pairs_numpy
-from octolgp.engines.lattice import LatticeEvidence, gather_observations
+from octolgp.engines.lattice import LatticeEvidence, _voxel_units, gather_observations
 from octolgp.mapping.grid import LeafGrid
 from octolgp.observations import advance, observe
 from octolgp.sweep import swept_keys
@@ -137,3 +137,36 @@ def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
         assert a.fresh is not None
         assert b.fresh is not None
         np.testing.assert_array_equal(a.fresh, b.fresh)
+
+
+@pytest.mark.parametrize("differ", [False, True])
+def test_unit_counts_equal_the_numpy_units(differ: bool) -> None:
+    """The compiled read of each voxel's counts against _voxel_units' numpy form: the same
+    counts for every voxel with copies, and None exactly where copies differ."""
+    if not gather_kernel.AVAILABLE:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(7)
+    n, n_halo, n_leaves = 300, 50, 40
+    counts = rng.integers(0, 6, (n_leaves, 2, n_halo)).astype(np.uint8)
+    voxel = np.sort(rng.integers(0, n, 700))  # some voxels without a copy
+    slot = rng.permutation(n_leaves * n_halo)[: voxel.size]  # each copy its own place
+    leaf, flat = slot // n_halo, slot % n_halo
+    at_h = leaf * (2 * n_halo) + flat
+    first = np.r_[0, np.flatnonzero(np.diff(voxel)) + 1]  # each voxel's first copy
+    owner = np.repeat(first, np.diff(np.r_[first, voxel.size]))
+    flat_counts = counts.reshape(-1)
+    flat_counts[at_h] = flat_counts[at_h[owner]]  # every copy holds its voxel's counts
+    flat_counts[at_h + n_halo] = flat_counts[at_h[owner] + n_halo]
+    if differ:  # one copy of a voxel with several copies disagrees
+        i = int(np.flatnonzero(owner != np.arange(voxel.size))[0])
+        flat_counts[at_h[i]] += 1
+    before_h = flat_counts[at_h].astype(np.int64)
+    before_f = flat_counts[at_h + n_halo].astype(np.int64)
+    unit, _, h, f = _voxel_units(before_h, before_f, voxel, n)
+    got = gather_kernel.unit_counts(voxel, at_h, n_halo, flat_counts, n)
+    assert (got is None) == differ == (unit is None)
+    if got is not None:
+        held = np.unique(voxel)
+        np.testing.assert_array_equal(got[0][held], h[held])
+        np.testing.assert_array_equal(got[1][held], f[held])
+        assert not got[0][np.setdiff1d(np.arange(n), held)].any()

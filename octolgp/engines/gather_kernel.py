@@ -191,15 +191,42 @@ def _scatter(
     return gained
 
 
+def _unit_counts(
+    voxel: IntArray,
+    at_h: IntArray,
+    n_halo: int,
+    flat_counts: NDArray[np.uint8],
+    h0: IntArray,
+    f0: IntArray,
+    seen: NDArray[np.bool_],
+) -> bool:  # pragma: no cover - compiled; tested through the compiled form
+    """Each voxel's counts from its pairs into ``h0``, ``f0``; False where copies differ."""
+    for i in range(voxel.size):
+        v = voxel[i]
+        h = flat_counts[at_h[i]]
+        f = flat_counts[at_h[i] + n_halo]
+        if seen[v]:
+            if h0[v] != h or f0[v] != f:
+                return False
+        else:
+            seen[v] = True
+            h0[v] = h
+            f0[v] = f
+    return True
+
+
 @functools.cache
-def _compiled() -> tuple[Callable[..., None], Callable[..., None], Callable[..., int]]:
+def _compiled() -> tuple[
+    Callable[..., None], Callable[..., None], Callable[..., int], Callable[..., bool]
+]:
     """The loops compiled by numba (cached on disk beside the module after the first run)."""
     from numba import njit
 
     pairs: Callable[..., None] = njit(cache=True, nogil=True)(_pairs)
     rule: Callable[..., None] = njit(cache=True, nogil=True)(_advance)
     scatter: Callable[..., int] = njit(cache=True, nogil=True)(_scatter)
-    return pairs, rule, scatter
+    units: Callable[..., bool] = njit(cache=True, nogil=True)(_unit_counts)
+    return pairs, rule, scatter, units
 
 
 def halo_pairs(
@@ -244,7 +271,7 @@ def halo_pairs(
         origin, extent = (0,) * d, (1,) * d
     stride = np.cumprod((1, *extent[:-1])).astype(np.int64)
     at = np.asarray(origin, dtype=np.int64)
-    pairs, _, _ = _compiled()
+    pairs = _compiled()[0]
     shift = side.bit_length() - 1
     cursor = np.zeros((1 << d) + 1, dtype=np.int64)
     none = np.zeros(0, dtype=np.int64)
@@ -273,7 +300,7 @@ def advance(
     h, f = np.empty(p, dtype=np.int64), np.empty(p, dtype=np.int64)
     position = np.empty((p, dim))
     replace, drop = np.empty(p, dtype=bool), np.empty(p, dtype=bool)
-    _, rule, _ = _compiled()
+    rule = _compiled()[1]
     rule(
         c(hits, dtype=np.int64),
         c(frees, dtype=np.int64),
@@ -344,7 +371,7 @@ def scatter_units(
         raise RuntimeError("the compiled gather needs numba")
     refit = np.zeros(n_touched, dtype=bool)
     new_counts = np.zeros(n_touched, dtype=bool)
-    _, _, scatter = _compiled()
+    scatter = _compiled()[2]
     gained = scatter(
         unit,
         at_h,
@@ -361,3 +388,39 @@ def scatter_units(
         new_counts,
     )
     return refit, new_counts, int(gained)
+
+
+def unit_counts(
+    voxel: IntArray, at_h: IntArray, n_halo: int, flat_counts: NDArray[np.uint8], n: int
+) -> tuple[IntArray, IntArray] | None:
+    """Each observed voxel's stored counts, read once from its (voxel, leaf) copies.
+
+    Parameters
+    ----------
+    voxel, at_h : ndarray of int64, shape (p,)
+        Per pair: its voxel, in ``[0, n)``, and its return count's index in
+        ``flat_counts`` (the free count's is ``n_halo`` further).
+    n_halo : int
+    flat_counts : ndarray of uint8
+        The touched leaves' stacked counts, flat.
+    n : int
+        Observed voxels.
+
+    Returns
+    -------
+    tuple of ndarray of int64, shape (n,), or None
+        The return and free counts of each voxel (0 for a voxel without copies);
+        ``None`` when two copies of a voxel differ (each copy is then a unit of its own).
+
+    Raises
+    ------
+    RuntimeError
+        If numba is not available.
+    """
+    if not AVAILABLE:
+        raise RuntimeError("the compiled gather needs numba")
+    h0 = np.zeros(n, dtype=np.int64)
+    f0 = np.zeros(n, dtype=np.int64)
+    seen = np.zeros(n, dtype=bool)
+    agree = _compiled()[3](voxel, at_h, n_halo, flat_counts, h0, f0, seen)
+    return (h0, f0) if agree else None

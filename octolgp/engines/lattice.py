@@ -381,10 +381,17 @@ def gather_observations(
     cap = config.lattice.evidence_cap
     at_h = inverse * (2 * n_halo) + flat  # each pair's return count in counts.ravel()
     flat_counts = counts.reshape(-1)
-    before_h = flat_counts[at_h].astype(np.int64)
-    before_f = flat_counts[at_h + n_halo].astype(np.int64)
     # the rule and what changes, per unit (a voxel, or a copy should copies differ)
-    unit, at, h0, f0 = _voxel_units(before_h, before_f, voxel, obs.n_voxels)
+    once = None
+    unit: IntArray | None
+    if gather_kernel.AVAILABLE:  # one pass over the pairs, no per-pair arrays
+        once = gather_kernel.unit_counts(voxel, at_h, n_halo, flat_counts, obs.n_voxels)
+    if once is not None:
+        unit, at, (h0, f0) = voxel, np.arange(obs.n_voxels), once
+    else:
+        before_h = flat_counts[at_h].astype(np.int64)
+        before_f = flat_counts[at_h + n_halo].astype(np.int64)
+        unit, at, h0, f0 = _voxel_units(before_h, before_f, voxel, obs.n_voxels)
     state = (gather_kernel.advance if gather_kernel.AVAILABLE else advance)(h0, f0, obs, at, cap)
     # what the leaf GP sees: its effective counts, and the kept returns
     eh0, ef0 = effective_counts(h0, f0, cap, obs.clear_scans)
