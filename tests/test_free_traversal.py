@@ -101,6 +101,16 @@ def test_free_codes_are_the_traversal_and_the_end_voxel(dim: int, n: int, dedup:
     assert codes.size == crossed + n
 
 
+def _whole_beams_config(dim: int, clear_scans: int) -> MapConfig:
+    """The test resolution, ``clear_scans``, and every no-return beam free to its end."""
+    return MapConfig(
+        dim=dim,
+        resolution=RESOLUTION[dim],
+        online=OnlineConfig(clear_scans=clear_scans),
+        training=TrainingConfig(no_return_range=math.inf),
+    )
+
+
 def _random_scans(
     rng: np.random.Generator, n_scans: int, dim: int, reach: float = 80.0
 ) -> list[Scan]:
@@ -128,12 +138,7 @@ def test_observe_sees_free_every_voxel_a_segment_passes_through(
     scan takes observe's one-pass path, several its general one."""
     res = RESOLUTION[dim]
     rng = np.random.default_rng(10 + dim)
-    config = MapConfig(
-        dim=dim,
-        resolution=res,
-        online=OnlineConfig(clear_scans=clear_scans),
-        training=TrainingConfig(no_return_range=math.inf),  # every no-return whole
-    )
+    config = _whole_beams_config(dim, clear_scans)
     scans = _random_scans(rng, n_scans, dim)
     obs = observe(scans, config)
     origins, ends, max_range = stack_beams(scans)
@@ -306,12 +311,7 @@ def test_one_scan_in_one_pass_gives_the_general_observations(
         pytest.skip("numba is not installed")
     res = RESOLUTION[dim]
     rng = np.random.default_rng(50 + dim)
-    config = MapConfig(
-        dim=dim,
-        resolution=res,
-        online=OnlineConfig(clear_scans=clear_scans),
-        training=TrainingConfig(no_return_range=math.inf),
-    )
+    config = _whole_beams_config(dim, clear_scans)
     scans = _random_scans(rng, 2, dim) + _random_scans(rng, 2, dim, reach=8.0)
     grid = Scan(origin=np.zeros(dim), points=rng.integers(-40, 40, (200, dim)) * res / 4)
     one_pass = 0
