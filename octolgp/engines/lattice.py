@@ -62,7 +62,9 @@ from octolgp.observations import (
     VoxelObservations,
     VoxelState,
     advance,
+    advance_chord,
     effective_counts,
+    free_inputs,
     observe,
     sorted_contains,
 )
@@ -73,6 +75,8 @@ from octolgp.training import IntArray
 _SIZES = struct.Struct("<qq")  # halo voxels of the counts, kept returns
 _NONE_SWEPT = np.zeros(0, dtype=bool)
 _NONE_SWEPT.setflags(write=False)
+_NONE_CHORD = np.zeros(0, dtype=np.uint16)
+_NONE_CHORD.setflags(write=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,12 +96,17 @@ class LatticeEvidence:
         Per halo-box voxel, whether a scan swept it between two beams
         (:func:`octolgp.sweep.swept_keys`): known for ``LatticeConfig.fill_voxels``, no
         evidence for the GP. Length 0: none swept.
+    chord : ndarray of uint16, shape (H,) or (0,)
+        Per halo-box voxel, its free looks' summed chord shares since its last return
+        (:func:`octolgp.observations.advance_chord`), in ``ray_kernel.CHORD_UNITS``,
+        saturated (``LatticeConfig.free_evidence = "chord"``). Length 0: none kept.
     """
 
     counts: NDArray[np.uint8]
     hit_keys: IntArray
     hits: FloatArray
     swept: NDArray[np.bool_] = dataclasses.field(default_factory=lambda: _NONE_SWEPT)
+    chord: NDArray[np.uint16] = dataclasses.field(default_factory=lambda: _NONE_CHORD)
 
     @classmethod
     def empty(cls, dim: int) -> LatticeEvidence:
@@ -112,7 +121,8 @@ class LatticeEvidence:
     @property
     def nbytes(self) -> int:
         """Bytes held by the arrays."""
-        return self.counts.nbytes + self.hit_keys.nbytes + self.hits.nbytes + self.swept.nbytes
+        arrays = (self.counts, self.hit_keys, self.hits, self.swept, self.chord)
+        return sum(a.nbytes for a in arrays)
 
 
 def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
@@ -323,6 +333,22 @@ def _stored_counts(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint8]:
     return out
 
 
+def _stored_chord(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint16]:
+    """The summed chord shares of leaves, zero for a new leaf or one keeping none.
+
+    Returns
+    -------
+    ndarray of uint16, shape (len(leaves), n_halo)
+    """
+    out = np.zeros((len(leaves), n_halo), dtype=np.uint16)
+    for j, leaf in enumerate(leaves):  # one iteration per touched leaf
+        if leaf is not None:
+            chord = lattice_evidence(leaf).chord
+            if chord.size == n_halo:
+                out[j] = chord
+    return out
+
+
 def gather_observations(
     obs: VoxelObservations,
     grid: LeafGrid,
@@ -433,6 +459,21 @@ def gather_observations(
     if fresh:  # the pairs whose GP input moved
         moved_in = effective if unit is None else effective[unit]
         stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
+    chord_rows = None
+    if obs.chord is not None:  # the summed chord shares, per copy
+        chord_rows = _stored_chord(current, n_halo)
+        at_w = inverse * n_halo + flat
+        flat_chord = chord_rows.reshape(-1)
+        w0 = flat_chord[at_w]
+        w1 = advance_chord(w0, obs, voxel)
+        free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
+        w_input = np.where(free1 > 0, w1, 0) != np.where(free0 > 0, w0, 0)
+        flat_chord[at_w] = w1
+        refit[inverse[w_input]] = True
+        new_counts[inverse[w_input | (w1 != w0)]] = True
+        if fresh:
+            stale_leaf = np.concatenate([stale_leaf, inverse[w_input]])
+            stale_flat = np.concatenate([stale_flat, flat[w_input]])
     new_swept: dict[int, NDArray[np.bool_]] = {}
     if swept_pairs is not None:
         new_swept, gained_at = _sweep_leaves(current, swept_pairs, n_halo)
@@ -464,16 +505,20 @@ def gather_observations(
         row = counts[j]  # a view: the leaf's own array is its copy
         leaf = current[j]  # one iteration per leaf with new counts: arrays of its own
         moved = returns.get(j)
+        chord_j = _NONE_CHORD if chord_rows is None else chord_rows[j].copy()
         if leaf is None:
             hit_keys, hits = moved or (np.zeros(0, np.int64), np.zeros((0, grid.dim)))
             swept_j = new_swept.get(j, _NONE_SWEPT)
-            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j)
+            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
             leaf = Leaf(touched_index[j].copy(), evidence)
         else:
             ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_counts
             hit_keys, hits = (ev.hit_keys, ev.hits) if moved is None else moved
             swept_j = new_swept.get(j, ev.swept)
-            leaf = leaf.with_evidence(LatticeEvidence(row.copy(), hit_keys, hits, swept_j))
+            if chord_rows is None:
+                chord_j = ev.chord
+            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
+            leaf = leaf.with_evidence(evidence)
         if r:
             changed.append((keys[j], leaf))
             if stale is not None:  # tiles keep their values only where the leaf holds all
@@ -843,6 +888,11 @@ def fit_lattice_leaves(
     bounds = np.linspace(0, which.size, runs + 1).round().astype(int)
     parts = [(lo, hi, returns.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)]
     flat_stored = stored.reshape(-1)
+    flat_chord = None  # the leaves' summed chord shares, where free evidence is chord
+    if lc.free_evidence == "chord":
+        none = np.zeros(n_halo, dtype=np.uint16)
+        flat_chord = _stack([ev.chord if ev.chord.size == n_halo else none for ev in evidence])
+        flat_chord = flat_chord.reshape(-1)
 
     def run(part: tuple[int, int, Returns]) -> tuple[np.ndarray, ...]:
         """Counts → the tiles' latent posteriors and P, as stored (float32), on a pool thread."""
@@ -854,7 +904,11 @@ def fit_lattice_leaves(
             lc.evidence_cap,
             config.clear_scans,
         )
-        mean, var = lattice_posterior(tables, hits, frees, lc.free_weight, tile_points)
+        chord = None
+        if flat_chord is not None:
+            chord = np.take(flat_chord, leaf_of[lo:hi, None] * n_halo + layout.window[tile_of[lo:hi]])
+        free_in, weight = free_inputs(frees, chord, config)
+        mean, var = lattice_posterior(tables, hits, free_in, weight, tile_points)
         prob = latent_occupancy(mean, var, hp)
         return mean.astype(np.float32), var.astype(np.float32), prob.astype(np.float32)
 
