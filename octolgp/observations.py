@@ -717,8 +717,7 @@ def chord_box(config: MapConfig) -> int:
 def _chord_sums(
     obs: VoxelObservations, hit_codes: IntArray, free_codes: IntArray, shares: IntArray, dim: int
 ) -> tuple[IntArray, IntArray]:
-    """Per voxel of ``obs``, the summed chord shares of its free looks and of those after
-    its last return.
+    """Per voxel of ``obs``: its free looks' summed chord shares, and those after its last return.
 
     ``hit_codes`` and ``free_codes`` are the (scan, voxel) codes seen occupied and free,
     ascending, ``shares`` the free ones' summed shares.
@@ -1173,9 +1172,7 @@ CHORD_CAP = (1 << 16) - 1
 64 whole chords)."""
 
 
-def advance_chord(
-    weights: NDArray[np.integer], obs: VoxelObservations, at: IntArray
-) -> IntArray:
+def advance_chord(weights: NDArray[np.integer], obs: VoxelObservations, at: IntArray) -> IntArray:
     """Apply a run of scans' chord shares to voxels' summed shares, as one by one.
 
     A voxel's summed shares are those of its free looks since its last return (all of

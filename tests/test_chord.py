@@ -10,6 +10,7 @@ scan by scan equals the map built at once.
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +19,7 @@ from test_online import assert_same_map, config2d, room_scan
 
 from octolgp import OnlineMap
 from octolgp.config import LatticeConfig, MapConfig, OnlineConfig
+from octolgp.engines.base import evidence_arrays
 from octolgp.geometry import ray_kernel
 from octolgp.geometry.keys import pack_keys
 from octolgp.observations import (
@@ -114,15 +116,22 @@ def test_summed_shares_at_once_are_the_scans_one_by_one(dim: int, clear: int) ->
     merged = merge_observations([observe(scans[:5], config), observe(scans[5:], config)], dim)
     numpy_form = observe(scans, config, compiled=False)
     for obs in (whole, merged, numpy_form):
-        assert obs.chord is not None and obs.tail_chord is not None
+        assert obs.chord is not None
+        assert obs.tail_chord is not None
         np.testing.assert_array_equal(obs.chord, whole.chord)
         np.testing.assert_array_equal(obs.tail_chord, whole.tail_chord)
         got = advance_chord(np.zeros(obs.n_voxels, np.int64), obs, np.arange(obs.n_voxels))
         assert dict(zip(pack_keys(obs.keys).tolist(), got.tolist(), strict=True)) == state
-    assert whole.tail_chord is not None and whole.chord is not None
+    assert whole.tail_chord is not None
+    assert whole.chord is not None
     if clear:  # returns restart the sums
         assert np.any(whole.tail_chord < whole.chord)
     assert observe(scans, dataclasses.replace(config, lattice=LatticeConfig())).chord is None
+
+
+def evidence_bytes_of(evidence: object) -> list[bytes]:
+    """Every array of a leaf's evidence, as bytes."""
+    return [a.tobytes() for a in evidence_arrays(evidence)]  # type: ignore[arg-type]
 
 
 def _chord2d(**online: object) -> MapConfig:
@@ -142,3 +151,36 @@ def test_one_by_one_equals_all_at_once_with_chord_weights() -> None:
     looks = OnlineMap(config2d())
     looks.insert_batch(scans)
     assert all(leaf.evidence.chord.size == 0 for _, leaf in looks.leaves())  # type: ignore[attr-defined]
+
+
+def test_chord_shares_round_trip_through_records_and_the_map_file(tmp_path: Path) -> None:
+    from octolgp.engines import engine_for
+    from octolgp.mapping.grid import LeafGrid
+    from octolgp.persist.mapfile import decode_leaf, encode_leaf
+
+    scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1), (-1, 2)]]
+    config = _chord2d()
+    path = tmp_path / "chord.octolgp"
+    with OnlineMap(config, path=path) as m:
+        m.insert_batch(scans[:3])
+        codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)
+        leaves = list(m.leaves())
+        for _key, leaf in leaves:
+            ev = leaf.evidence
+            assert ev.chord.any()  # type: ignore[attr-defined]
+            for back in (
+                codec.from_record(codec.record(ev, leaf.index), leaf.index),
+                codec.decode(codec.encode(ev), 2),
+                decode_leaf(encode_leaf(leaf, codec), codec, grid).evidence,
+            ):
+                assert evidence_bytes_of(back) == evidence_bytes_of(ev)
+        many = codec.records(
+            [leaf.evidence for _, leaf in leaves], np.stack([lf.index for _, lf in leaves])
+        )
+        assert many == [codec.record(lf.evidence, lf.index) for _, lf in leaves]
+    with OnlineMap.open(path) as back:
+        assert back.config == m.config
+        back.insert_scan(scans[3])
+        whole = OnlineMap(config)
+        whole.insert_batch(scans)
+        assert_same_map(back, whole)

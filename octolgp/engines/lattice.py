@@ -41,7 +41,7 @@ from octolgp.engines.base import (
 )
 from octolgp.engines.known import grow_seen, halo_pairs, seen_near
 from octolgp.engines.lattice_record import (
-    decode_lattice_swept,
+    decode_lattice_record,
     encode_lattice,
     encode_lattice_many,
 )
@@ -906,7 +906,9 @@ def fit_lattice_leaves(
         )
         chord = None
         if flat_chord is not None:
-            chord = np.take(flat_chord, leaf_of[lo:hi, None] * n_halo + layout.window[tile_of[lo:hi]])
+            chord = np.take(
+                flat_chord, leaf_of[lo:hi, None] * n_halo + layout.window[tile_of[lo:hi]]
+            )
         free_in, weight = free_inputs(frees, chord, config)
         mean, var = lattice_posterior(tables, hits, free_in, weight, tile_points)
         prob = latent_occupancy(mean, var, hp)
@@ -1051,7 +1053,7 @@ class LatticeEngine:
     def record(self, evidence: object, index: IntArray) -> bytes:
         """The compact record (:func:`octolgp.engines.lattice_record.encode_lattice`)."""
         ev = lattice_evidence_of(evidence)
-        return encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, self.grid, ev.swept)
+        return encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, self.grid, ev.swept, ev.chord)
 
     def records(self, evidence: Sequence[object], indices: IntArray) -> list[bytes]:
         """:meth:`record` of many leaves at once (the same bytes)."""
@@ -1059,17 +1061,19 @@ class LatticeEngine:
         counts = [ev.counts for ev in evs]
         keys, hits = [ev.hit_keys for ev in evs], [ev.hits for ev in evs]
         swept = [ev.swept for ev in evs]
+        if any(ev.chord.size for ev in evs):  # leaves keeping chord shares one by one
+            return [self.record(ev, i) for ev, i in zip(evs, indices, strict=True)]
         return encode_lattice_many(counts, keys, hits, indices, self.grid, swept)
 
     def from_record(self, blob: bytes, index: IntArray) -> LatticeEvidence:
         """Inverse of :meth:`record`."""
-        return LatticeEvidence(*decode_lattice_swept(blob, index, self.grid))
+        return LatticeEvidence(*decode_lattice_record(blob, index, self.grid))
 
     def encode(self, evidence: object) -> bytes:
-        """Sizes, the counts (uint8), the kept returns' keys and positions, any swept bitmap.
+        """Sizes, counts (uint8), kept returns' keys and positions, chord shares, swept bitmap.
 
-        The swept voxels' bitmap (``np.packbits``, little bit order) ends the bytes
-        where a voxel is swept.
+        The chord shares follow the returns where the leaf keeps them; the swept voxels'
+        bitmap (``np.packbits``, little bit order) ends the bytes where a voxel is swept.
         """
         ev = lattice_evidence_of(evidence)
         head = _SIZES.pack(ev.counts.shape[1], ev.hit_keys.size)
@@ -1078,6 +1082,8 @@ class LatticeEngine:
             ev.hit_keys.astype("<i8"),
             ev.hits.astype("<f8"),
         ]
+        if ev.chord.size:
+            parts.append(ev.chord.astype("<u2"))
         if ev.swept.any():
             parts.append(np.packbits(ev.swept, bitorder="little"))
         return head + b"".join(p.tobytes() for p in parts)
@@ -1091,10 +1097,16 @@ class LatticeEngine:
             raise OctolgpError("lattice evidence has a bad header")
         specs = [(2 * n_halo, "u1"), (r, "<i8"), (r * dim, "<f8")]
         n_bits = (n_halo + 7) // 8
-        swept = _NONE_SWEPT
-        if n_halo and len(blob) == _SIZES.size + 2 * n_halo + 8 * r * (1 + dim) + n_bits:
+        base = _SIZES.size + 2 * n_halo + 8 * r * (1 + dim)
+        swept, chord = _NONE_SWEPT, _NONE_CHORD
+        if n_halo and len(blob) in (base + n_bits, base + 2 * n_halo + n_bits):
             bits = np.frombuffer(blob, np.uint8, n_bits, len(blob) - n_bits)
             swept = np.unpackbits(bits, count=n_halo, bitorder="little").astype(bool)
             blob = blob[: len(blob) - n_bits]
+        if n_halo and len(blob) == base + 2 * n_halo:
+            chord = np.frombuffer(blob, "<u2", n_halo, base).astype(np.uint16)
+            blob = blob[:base]
         counts, hit_keys, hits = read_arrays(blob, _SIZES.size, specs)
-        return LatticeEvidence(counts.reshape(2, n_halo), hit_keys, hits.reshape(r, dim), swept)
+        return LatticeEvidence(
+            counts.reshape(2, n_halo), hit_keys, hits.reshape(r, dim), swept, chord
+        )

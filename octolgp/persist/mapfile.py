@@ -73,13 +73,15 @@ from octolgp.persist.lock import WriterLock, held_by_a_writer
 from octolgp.scan import Scan
 
 FORMAT = "octolgp-map"
-VERSION = 9
-READABLE_VERSIONS = ("2", "3", "4", "5", "6", "7", "8", "9")
+VERSION = 10
+READABLE_VERSIONS = ("2", "3", "4", "5", "6", "7", "8", "9", "10")
 """File versions this code opens (2: before the engines owned their leaf records;
 3: before checksums; 4: before compact records; 5: before every beam was rounded and
 journaled beams were sorted; 6: before the journal kept each scan's sensor rotation;
 7: before lattice leaves kept the voxels swept between beams; 8: before exact leaves
-kept their seen masks, so an exact leaf of such a file counts every voxel as seen)."""
+kept their seen masks, so an exact leaf of such a file counts every voxel as seen;
+9: before lattice leaves could keep their voxels' summed chord shares, so a lattice
+leaf of such a file keeps none)."""
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _HEADER = struct.Struct("<4sBBxxqqqq")  # magic, version, dim, values, pruned, refits, touched
 _OLD_HEADER = struct.Struct("<4sBBxxqqqqqq")  # records 1 and 2: h, s, v, pruned, refits, touched
