@@ -709,7 +709,7 @@ def chord_box(config: MapConfig) -> int:
     A leaf's edge where ``lattice.free_evidence`` is ``"chord"`` and the engine is the
     lattice engine.
     """
-    if config.online.engine != "lattice" or config.lattice.free_evidence != "chord":
+    if config.online.engine != "lattice" or config.free_evidence != "chord":
         return 0
     return 1 << (config.tree_depth - config.leaf_depth)
 
@@ -1229,7 +1229,7 @@ def free_inputs(
         ``lattice.free_weight``, or ``lattice.chord_weight / CHORD_UNITS``.
     """
     lc = config.lattice
-    if lc.free_evidence != "chord":
+    if config.free_evidence != "chord":
         return frees, lc.free_weight
     if chord is None:
         return np.zeros(frees.shape, dtype=np.int64), 1.0

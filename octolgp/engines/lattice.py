@@ -889,7 +889,7 @@ def fit_lattice_leaves(
     parts = [(lo, hi, returns.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)]
     flat_stored = stored.reshape(-1)
     flat_chord = None  # the leaves' summed chord shares, where free evidence is chord
-    if lc.free_evidence == "chord":
+    if config.free_evidence == "chord":
         none = np.zeros(n_halo, dtype=np.uint16)
         flat_chord = _stack([ev.chord if ev.chord.size == n_halo else none for ev in evidence])
         flat_chord = flat_chord.reshape(-1)

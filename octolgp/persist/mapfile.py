@@ -278,7 +278,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     every scan in the journal (``online.journal_scans``), and files from before
     ``training.no_return_range`` kept every beam whole and, before
     ``lattice.fill_voxels``, filled every voxel of a leaf, and files from before
-    ``lattice.sweep_angle`` swept nothing between beams. The other derived fields
+    ``lattice.sweep_angle`` swept nothing between beams, and files from before
+    ``lattice.free_evidence`` weighed every free look alike. The other derived fields
     take the defaults they had when those files were written, which are today's.
 
     Raises
@@ -312,6 +313,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         lattice["fill_voxels"] = -1  # every voxel of a leaf filled, as then
     if isinstance(lattice, dict) and "sweep_angle" not in lattice:
         lattice["sweep_angle"] = 0.0  # nothing swept between beams, as then
+    if isinstance(lattice, dict) and "free_evidence" not in lattice:
+        lattice["free_evidence"] = "looks"  # each free look weighed alike, as then
     training = stored.setdefault("training", {})
     if isinstance(training, dict) and "no_return_range" not in training:
         training["no_return_range"] = math.inf  # every beam whole, as then
