@@ -8,7 +8,10 @@ to ``OnlineConfig.clear_scans`` with forgetting on), updated by the newer-eviden
 (:func:`octolgp.observations.newer_evidence_wins`), and one measured return per voxel it
 sees occupied. The leaf's GP sees the returns at their positions and the free voxels at
 their centres, a free look weighing ``LatticeConfig.free_weight`` of a return
-(:func:`octolgp.observations.effective_counts`); it is a sparse GP on an inducing lattice
+(:func:`octolgp.observations.effective_counts`), or, with ``LatticeConfig.free_evidence =
+"chord"``, a free voxel weighing ``chord_weight`` times its summed shares of the free
+segments' chords through the leaf holding it, which the leaf keeps per halo voxel beside
+the counts (:func:`octolgp.observations.advance_chord`); it is a sparse GP on an inducing lattice
 whose kernel tables every leaf shares (:mod:`octolgp.gp.lattice`), so many leaves fit in a
 few matrix products. A leaf's counts are a function of the scans in time order, not of
 how they were grouped into steps, so inserting scans one by one gives the map of
