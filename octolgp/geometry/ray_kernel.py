@@ -81,7 +81,8 @@ def _walk(
         n_held = 0
         for a in range(dim):
             nxt[a] = 1
-            coord[a] = key0[s, a]
+            if weigh:  # key0 is empty without shares
+                coord[a] = key0[s, a]
             remaining += crossings[s, a]
             t_next[a] = (1 - gap[s, a]) / size[s, a] if crossings[s, a] >= 1 else np.inf
         while True:  # the voxel entered at t, then the next crossing
