@@ -213,3 +213,28 @@ def test_learning_weighs_free_voxels_as_the_fit() -> None:
     want = config.lattice.chord_weight * kept / ray_kernel.CHORD_UNITS
     np.testing.assert_allclose(weights[y < 0], want, rtol=1e-12)
     assert np.all(kept > 0)
+
+
+def test_one_by_one_equals_all_at_once_in_3d() -> None:
+    """3D leaves share a voxel among up to eight halo boxes: every copy gets the sums."""
+    from octolgp import Hyperparameters
+    from octolgp.sim.lidar3d import simulate_lidar_room
+
+    room = simulate_lidar_room(
+        4, seed=0, n_azimuth=128, n_elevation=8, max_range=30.0, range_noise=0.0, n_heldout=1
+    )
+    scans = [s.downsample(0.2) for s in room.scans()]
+    hp = Hyperparameters(
+        length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0, beta=0.0
+    )
+    config = MapConfig(
+        dim=3, resolution=0.2, hyperparameters=hp, lattice=LatticeConfig(free_evidence="chord")
+    )
+    a = OnlineMap(config)
+    for s in scans:
+        a.insert_scan(s)
+    b = OnlineMap(config)
+    b.insert_batch(scans)
+    for m in (a, b):
+        m.occupancy(np.zeros((1, 3)))  # fits the deferred leaves
+    assert_same_map(a, b)
