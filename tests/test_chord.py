@@ -25,6 +25,7 @@ from octolgp.geometry.keys import pack_keys
 from octolgp.observations import (
     _scan_codes,
     _walk_free,
+    advance,
     advance_chord,
     merge_observations,
     observe,
@@ -120,8 +121,11 @@ def test_summed_shares_at_once_are_the_scans_one_by_one(dim: int, clear: int) ->
         assert obs.tail_chord is not None
         np.testing.assert_array_equal(obs.chord, whole.chord)
         np.testing.assert_array_equal(obs.tail_chord, whole.tail_chord)
-        got = advance_chord(np.zeros(obs.n_voxels, np.int64), obs, np.arange(obs.n_voxels))
+        zero = np.zeros(obs.n_voxels, np.int64)
+        got = advance_chord(zero, obs, np.arange(obs.n_voxels))
         assert dict(zip(pack_keys(obs.keys).tolist(), got.tolist(), strict=True)) == state
+        counts = advance(zero, zero, obs, np.arange(obs.n_voxels), 1)
+        assert np.all((got == 0) | (counts.hits > 0) | (counts.frees > 0))  # a record keeps it
     assert whole.tail_chord is not None
     assert whole.chord is not None
     if clear:  # returns restart the sums
