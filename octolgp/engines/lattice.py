@@ -463,17 +463,30 @@ def gather_observations(
         moved_in = effective if unit is None else effective[unit]
         stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
     chord_rows = None
-    if obs.chord is not None:  # the summed chord shares, per copy
+    if obs.chord is not None:  # the summed chord shares: once per voxel where copies agree
         chord_rows = _stored_chord(current, n_halo)
         at_w = inverse * n_halo + flat
         flat_chord = chord_rows.reshape(-1)
-        w0 = flat_chord[at_w]
-        w1 = advance_chord(w0, obs, voxel)
-        free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
+        w_pairs = flat_chord[at_w]
+        w_unit, w0 = None, w_pairs
+        if unit is not None:
+            rep = np.zeros(obs.n_voxels, dtype=np.int64)
+            rep[voxel] = np.arange(voxel.size)
+            if np.array_equal(w_pairs[rep][voxel], w_pairs):
+                w_unit, w0 = voxel, w_pairs[rep]
+        w_at = voxel if w_unit is None else np.arange(obs.n_voxels)
+        w1 = advance_chord(w0, obs, w_at)
+        if w_unit is None:  # per copy: the counts' units to copies
+            free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
+        else:
+            free0, free1 = ef0, ef1
         w_input = np.where(free1 > 0, w1, 0) != np.where(free0 > 0, w0, 0)
+        w_stored = w_input | (w1 != w0)
+        if w_unit is not None:
+            w1, w_input, w_stored = w1[w_unit], w_input[w_unit], w_stored[w_unit]
         flat_chord[at_w] = w1
         refit[inverse[w_input]] = True
-        new_counts[inverse[w_input | (w1 != w0)]] = True
+        new_counts[inverse[w_stored]] = True
         if fresh:
             stale_leaf = np.concatenate([stale_leaf, inverse[w_input]])
             stale_flat = np.concatenate([stale_flat, flat[w_input]])
