@@ -453,6 +453,10 @@ class OnlineConfig:
             )
 
 
+FREE_EVIDENCE = ("looks", "chord")
+"""The weightings of a lattice leaf's free voxels (``LatticeConfig.free_evidence``)."""
+
+
 @dataclass(frozen=True, slots=True)
 class LatticeConfig:
     """The lattice leaf engine's advanced settings (:mod:`octolgp.engines.lattice`).
@@ -478,6 +482,21 @@ class LatticeConfig:
         (``tools/quality_variants.py``); weights above 0.06 lose on every scene. Lower
         weights gain more AUC but leave a cell at an opened door's frame reading
         occupied (0.045 already).
+    free_evidence : {"looks", "chord"} or None
+        How much a free voxel weighs in its leaf's GP. ``"looks"``: each
+        counted free look weighs ``free_weight``
+        (:func:`~octolgp.observations.effective_counts`). ``"chord"``: each scan's free
+        segment gives every voxel it passes through the voxel's share of the segment's
+        chord through the leaf holding the voxel (the part of the chord inside the voxel
+        over the chord's length in the leaf), the leaf keeps per voxel the sum of those
+        shares since the voxel's last return, and a free voxel weighs ``chord_weight``
+        times it: a long chord through empty space is spread thin over its voxels, a short
+        one ending before a return is concentrated on few, as a free piece of the exact
+        engine is one observation per leaf box. ``None`` (default):
+        :data:`DEFAULT_FREE_EVIDENCE` (files written before this setting: ``"looks"``).
+    chord_weight : float
+        With ``free_evidence = "chord"``, the weight of a whole chord through a leaf (a
+        free voxel weighs this times its summed shares). In [1e-6, 1e6]. Default 0.03.
     inducing_spacing : float or None
         Largest spacing of the inducing lattice as a fraction of the length scale, at
         least 1e-6 (:data:`MIN_SPACING`); the lattice gets
@@ -537,6 +556,8 @@ class LatticeConfig:
 
     evidence_cap: int = 1
     free_weight: float = 0.05
+    free_evidence: str | None = None
+    chord_weight: float = 0.03
     inducing_spacing: float | None = None
     max_inducing_per_axis: int | None = None
     clear_margin: float | None = None
@@ -552,6 +573,12 @@ class LatticeConfig:
         if self.fill_voxels is not None:
             _integer("LatticeConfig", "fill_voxels", self.fill_voxels, -1, 1 << 15)
         _positive("LatticeConfig", "free_weight", self.free_weight, low=1e-6, high=1e6)
+        _positive("LatticeConfig", "chord_weight", self.chord_weight, low=1e-6, high=1e6)
+        if self.free_evidence is not None and self.free_evidence not in FREE_EVIDENCE:
+            raise OctolgpError(
+                f"LatticeConfig.free_evidence must be one of {FREE_EVIDENCE}, "
+                f"got {self.free_evidence!r}"
+            )
         if self.inducing_spacing is not None:
             _positive("LatticeConfig", "inducing_spacing", self.inducing_spacing, low=MIN_SPACING)
         if self.max_inducing_per_axis is not None:
@@ -601,6 +628,9 @@ DEFAULT_FILL_VOXELS = MappingProxyType({2: 2, 3: 1})
 """The default ``fill_voxels`` per dimension, capped by the halo it may reach (see
 :class:`LatticeConfig`): the most the default tiles allow (BENCHMARKS.md, "Honest
 unknown")."""
+
+DEFAULT_FREE_EVIDENCE = MappingProxyType({2: "looks", 3: "looks"})
+"""The default ``free_evidence`` per dimension (see :class:`LatticeConfig`)."""
 
 DEFAULT_SWEEP_ANGLE = MappingProxyType({2: 2.5, 3: 0.0})
 """The default ``sweep_angle`` in degrees per dimension (see :class:`LatticeConfig`): in 2D,
@@ -755,6 +785,7 @@ class MapConfig:
             min_inducing_per_axis=self.min_inducing_per_axis,
             fill_voxels=self.fill_voxels,
             sweep_angle=self.sweep_angle,
+            free_evidence=self.free_evidence,
         )
         training = dataclasses.replace(
             self.training, free_margin=self.free_margin, no_return_range=self.no_return_range
@@ -819,6 +850,13 @@ class MapConfig:
             side = 1 << (self.tree_depth - self.leaf_depth)
             return math.ceil(self.halo * side - 1e-9)
         return self.tile_halo_voxels
+
+    @property
+    def free_evidence(self) -> str:
+        """How a lattice leaf weighs its free voxels (``lattice.free_evidence`` or its default)."""
+        if self.lattice.free_evidence is not None:
+            return self.lattice.free_evidence
+        return DEFAULT_FREE_EVIDENCE[self.dim]
 
     @property
     def sweep_angle(self) -> float:

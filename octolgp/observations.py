@@ -105,6 +105,14 @@ class VoxelObservations:
         predecessors are forgotten); else 0.
     restart_hit : ndarray of shape (n, d)
         The first return of the scan that starts ``restart_hits``; NaN where it is 0.
+    chord : ndarray of int64, shape (n,), optional
+        Chord weights (``LatticeConfig.free_evidence = "chord"``): per voxel, the sum over
+        the scans seeing it free of their free segments' shares of their chords through
+        the leaf holding it (:func:`_walk_free`), in ``ray_kernel.CHORD_UNITS``.
+        ``None``: not observed.
+    tail_chord : ndarray of int64, shape (n,), optional
+        The part of ``chord`` from the scans after the voxel's last return (all of it
+        where ``hits`` is 0).
     """
 
     keys: IntArray
@@ -117,6 +125,8 @@ class VoxelObservations:
     tail_frees: IntArray
     restart_hits: IntArray
     restart_hit: np.ndarray
+    chord: IntArray | None = None
+    tail_chord: IntArray | None = None
 
     @property
     def strong_frees(self) -> IntArray:
@@ -289,6 +299,80 @@ def _free_codes(
 ) -> tuple[IntArray, IntArray]:
     """Unique (scan, voxel) codes of the voxels the free segments pass through.
 
+    :func:`_walk_free` without chord shares: its ``codes`` and ``near_only``.
+    """
+    codes, near_only, _ = _walk_free(
+        origins, free_end, scan, resolution, tree_depth, near, compiled=compiled, region=region
+    )
+    return codes, near_only
+
+
+def _visit_shares(
+    owner: IntArray, t: np.ndarray, axis: IntArray, leaves: NDArray[np.bool_]
+) -> IntArray:
+    """Chord shares of segments' voxel visits, as the compiled walk computes them.
+
+    Parameters
+    ----------
+    owner : ndarray of int64, shape (m,)
+        Each visit's segment.
+    t : ndarray of shape (m,)
+        Where the segment enters the voxel (0 for its origin's).
+    axis : ndarray of int64, shape (m,)
+        The axis crossed to enter it (the dimension for the origin's voxel): visits at
+        equal ``t`` go in the walk's order, the last axis first.
+    leaves : ndarray of bool, shape (m,)
+        The crossing enters another box.
+
+    Returns
+    -------
+    ndarray of int64, shape (m,)
+        Each visit's share of its segment's chord through its box, in
+        ``ray_kernel.CHORD_UNITS`` (rounded to nearest, at least 1).
+    """
+    if owner.size == 0:
+        return np.zeros(0, dtype=np.int64)
+    order = np.lexsort((-axis, t, owner))  # the walk's order
+    o, tt = owner[order], t[order]
+    last = np.r_[o[1:] != o[:-1], True]  # a segment's last visit
+    t_next = np.where(last, 1.0, np.r_[tt[1:], 1.0])  # where the walk leaves the voxel
+    run_start = np.r_[True, (o[1:] != o[:-1]) | leaves[order][1:]]  # a box's first visit
+    run = np.cumsum(run_start) - 1
+    run_last = np.r_[run_start[1:], True]
+    total = t_next[run_last][run] - tt[run_start][run]
+    count = np.bincount(run)[run]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        share = np.where(total > 0.0, (t_next - tt) / total, 1.0 / count)
+    q = np.maximum(1, np.floor(share * ray_kernel.CHORD_UNITS + 0.5)).astype(np.int64)
+    out = np.empty(owner.size, dtype=np.int64)
+    out[order] = q
+    return out
+
+
+def _code_sums(codes: IntArray, values: IntArray) -> tuple[IntArray, IntArray]:
+    """Sorted unique codes and the sum of ``values`` over each code's occurrences."""
+    order = np.argsort(codes, kind="stable")
+    c = codes[order]
+    if c.size == 0:
+        return c, np.zeros(0, dtype=np.int64)
+    starts = np.flatnonzero(np.r_[True, c[1:] != c[:-1]])
+    return c[starts], np.add.reduceat(values[order].astype(np.int64), starts)
+
+
+def _walk_free(
+    origins: np.ndarray,
+    free_end: np.ndarray,
+    scan: IntArray,
+    resolution: float,
+    tree_depth: int,
+    near: np.ndarray | None = None,
+    *,
+    compiled: bool | None = None,
+    region: KeyRegion | None = None,
+    box: int = 0,
+) -> tuple[IntArray, IntArray, IntArray]:
+    """Unique (scan, voxel) codes of the voxels the free segments pass through, and their shares.
+
     A segment's voxels are every voxel the closed segment from its origin to its end
     passes through: those of :func:`octolgp.geometry.raycast.traverse_voxels` (OctoMap's
     ``computeRayKeys``) and the end's own voxel. Per axis a segment crosses
@@ -320,6 +404,11 @@ def _free_codes(
         Both give the same codes.
     region : KeyRegion, optional
         Keep only the voxels in it (dropped as they are walked); all where ``None``.
+    box : int
+        With ``box > 0``, each segment gives every voxel it passes through the voxel's
+        share of its chord through the box of ``box`` keys per axis (aligned to key 0,
+        a leaf's) holding the voxel (:func:`octolgp.geometry.ray_kernel.walk_segments`),
+        summed per (scan, voxel); ``0``: no shares.
 
     Returns
     -------
@@ -329,11 +418,14 @@ def _free_codes(
         Those whose every segment of that scan is within ``near`` of its end inside
         the voxel: the segment enters the voxel at ``t >= 1 - near / length``
         (``length`` the segment's, metres). Empty where ``near`` is None.
+    shares : ndarray of int64, shape (m,) or (0,)
+        Each code's summed chord shares in ``ray_kernel.CHORD_UNITS`` (empty where
+        ``box`` is 0).
     """
     none = np.zeros(0, dtype=np.int64)
     n_seg, dim = origins.shape
     if n_seg == 0:
-        return none, none
+        return none, none, none
     u0 = origins / resolution  # coordinates in voxels
     k0 = np.floor(u0)
     k1 = np.floor(free_end / resolution)
@@ -373,6 +465,9 @@ def _free_codes(
     if compiled is None:
         compiled = ray_kernel.AVAILABLE
     state = ray_kernel.state_map(int(cells.sum()) if dense else 0)
+    weights = np.zeros(state.size if box and dense else 0, dtype=np.int32)
+    share_codes: list[IntArray] = []  # sparse: every visit's code and share
+    share_parts: list[IntArray] = []
     parts: list[IntArray] = []
     near_parts: list[IntArray] = []
     ends = np.cumsum(per_seg)
@@ -386,7 +481,7 @@ def _free_codes(
         hi = n_seg if compiled and dense else max(hi, lo + 1)
         if compiled:  # the compiled walk marks the maps, or lists the block's voxels
             s = slice(lo, hi)
-            listed, listed_near = ray_kernel.walk_segments(
+            listed, listed_near, listed_share = ray_kernel.walk_segments(
                 start[s],
                 move[s],
                 crossings[s],
@@ -394,11 +489,17 @@ def _free_codes(
                 size[s],
                 enter[s],
                 state if dense else None,
+                (key0[s], box, weights if dense else None) if box else None,
             )
             if not dense:
                 if region is not None:
                     walked = region.contains(listed)
                     listed, listed_near = listed[walked], listed_near[walked]
+                    if box:
+                        listed_share = listed_share[walked]
+                if box:
+                    share_codes.append(listed)
+                    share_parts.append(listed_share)
                 if near is not None:
                     near_parts.append(sorted_unique(listed[listed_near]))
                 parts.append(sorted_unique(listed[~listed_near]))
@@ -407,6 +508,8 @@ def _free_codes(
         index = [start[lo:hi]]  # each segment's origin voxel, entered at t = 0
         t_in = [np.zeros(hi - lo)]
         owner = [np.arange(lo, hi)]
+        axes = [np.full(hi - lo, dim, dtype=np.int64)]
+        leaves = [np.zeros(hi - lo, dtype=bool)]
         for a in range(dim):  # the crossings of axis a
             counts = n_c[a][lo:hi]
             total = int(counts.sum())
@@ -415,6 +518,10 @@ def _free_codes(
             seg = np.repeat(np.arange(lo, hi), counts)
             i = np.arange(1, total + 1) - np.repeat(np.cumsum(counts) - counts, counts)
             t = (i - gap_c[a][seg]) / size_c[a][seg]
+            if box:  # the crossing enters another box along a
+                after = key0[seg, a] + i * step[seg, a]
+                leaves.append(after // box != (after - step[seg, a]) // box)
+                axes.append(np.full(total, a, dtype=np.int64))
             moved = i * move_c[a][seg]  # index change from the origin's voxel
             for b in range(dim):  # the other axes: their voxel at t
                 if b != a:
@@ -425,6 +532,18 @@ def _free_codes(
             owner.append(seg)
         idx = np.concatenate(index)
         wanted = None if dense or region is None else region.contains(idx)
+        if box:
+            q = _visit_shares(
+                np.concatenate(owner),
+                np.concatenate(t_in),
+                np.concatenate(axes),
+                np.concatenate(leaves),
+            )
+            if dense:
+                np.add.at(weights, idx, q.astype(np.int32))
+            else:
+                share_codes.append(idx if wanted is None else idx[wanted])
+                share_parts.append(q if wanted is None else q[wanted])
         if near is not None:
             is_near = np.concatenate(t_in) >= enter_near[np.concatenate(owner)]
             if wanted is not None:
@@ -449,15 +568,21 @@ def _free_codes(
         if region is not None:
             marked = region.contains(codes)
             cell, codes = cell[marked], codes[marked]
+        shares = weights[cell].astype(np.int64) if box else none
         if near is None:
-            return codes, none
-        return codes, codes[state[cell] == ray_kernel.NEAR]
+            return codes, none, shares
+        return codes, codes[state[cell] == ray_kernel.NEAR], shares
+    shares = none
+    if box:
+        _, shares = _code_sums(
+            np.concatenate([none, *share_codes]), np.concatenate([none, *share_parts])
+        )
     far = merge_unique(*parts)
     if near is None:
-        return far, none
+        return far, none, shares
     close_codes = merge_unique(*near_parts)
     only = close_codes[~np.isin(close_codes, far, assume_unique=True)]
-    return merge_unique(far, only), only
+    return merge_unique(far, only), only, shares
 
 
 def observe(
@@ -536,7 +661,8 @@ def observe(
     # weak: within clear_margin of the beam's return, or anywhere on a no-return beam
     margin = max(config.clear_margin - config.free_margin, 0.0)  # from the segment's end
     near = np.where(beams.is_hit[seg], margin, np.inf) if k else None
-    free_codes, weak_codes = _free_codes(
+    box = chord_box(config)
+    free_codes, weak_codes, shares = _walk_free(
         origins[seg],
         beams.free_end[seg],
         scan[seg],
@@ -545,8 +671,12 @@ def observe(
         near,
         compiled=compiled,
         region=region,
+        box=box,
     )
-    free_codes = free_codes[~sorted_contains(hit_codes, free_codes)]  # both ascending
+    seen_free = ~sorted_contains(hit_codes, free_codes)  # both ascending
+    free_codes = free_codes[seen_free]
+    if box:
+        shares = shares[seen_free]
     weak_codes = weak_codes[~sorted_contains(hit_codes, weak_codes)]
     mask = (1 << (KEY_BITS * dim)) - 1
     one = len(scan_list) == 1  # codes of one scan ascend as their voxels do
@@ -558,15 +688,50 @@ def observe(
     ordered = (hit_codes & mask)[order]
     first = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
     obs = _combine(hit_vox, hit_n, free_vox, free_n, code_points[first], dim)
-    if not k:
-        return obs
-    weak = np.zeros(obs.hits.size, dtype=np.int64)
-    weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
-    obs = dataclasses.replace(obs, weak_frees=weak)
-    if len(scan_list) == 1:
-        return one_scan_summary(obs, k)
-    strong = free_codes[~sorted_contains(weak_codes, free_codes)]
-    return _summarise(obs, hit_codes, code_points, strong, k)
+    chord = _chord_sums(obs, hit_codes, free_codes, shares, dim) if box else None
+    if k:
+        weak = np.zeros(obs.hits.size, dtype=np.int64)
+        weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
+        obs = dataclasses.replace(obs, weak_frees=weak)
+        if len(scan_list) == 1:
+            obs = one_scan_summary(obs, k)
+        else:
+            strong = free_codes[~sorted_contains(weak_codes, free_codes)]
+            obs = _summarise(obs, hit_codes, code_points, strong, k)
+    if chord is not None:
+        obs = dataclasses.replace(obs, chord=chord[0], tail_chord=chord[1])
+    return obs
+
+
+def chord_box(config: MapConfig) -> int:
+    """Edge, in voxels, of the boxes free segments' chords are shared in (0: no shares).
+
+    A leaf's edge where ``lattice.free_evidence`` is ``"chord"`` and the engine is the
+    lattice engine.
+    """
+    if config.online.engine != "lattice" or config.free_evidence != "chord":
+        return 0
+    return 1 << (config.tree_depth - config.leaf_depth)
+
+
+def _chord_sums(
+    obs: VoxelObservations, hit_codes: IntArray, free_codes: IntArray, shares: IntArray, dim: int
+) -> tuple[IntArray, IntArray]:
+    """Per voxel of ``obs``: its free looks' summed chord shares, and those after its last return.
+
+    ``hit_codes`` and ``free_codes`` are the (scan, voxel) codes seen occupied and free,
+    ascending, ``shares`` the free ones' summed shares.
+    """
+    bits = KEY_BITS * dim
+    mask = (1 << bits) - 1
+    packed = pack_keys(obs.keys)
+    voxel = np.searchsorted(packed, free_codes & mask)
+    chord = np.bincount(voxel, shares, minlength=packed.size).astype(np.int64)
+    last_hit = np.full(packed.size, -1, dtype=np.int64)
+    np.maximum.at(last_hit, np.searchsorted(packed, hit_codes & mask), hit_codes >> bits)
+    after = (free_codes >> bits) > last_hit[voxel]
+    tail = np.bincount(voxel[after], shares[after], minlength=packed.size).astype(np.int64)
+    return chord, tail
 
 
 def _observe_one(
@@ -629,7 +794,10 @@ def _observe_one(
             enter = 1.0 - near / np.linalg.norm(end_pt - start_pt, axis=1)
     state = ray_kernel.state_map(cells)
     start = (key0 - low) @ stride
-    ray_kernel.walk_segments(start, move, crossings, gap, np.abs(du), enter, state)
+    box = chord_box(config)
+    weights = np.zeros(state.size if box else 0, dtype=np.int32)
+    chord = (key0, box, weights) if box else None
+    ray_kernel.walk_segments(start, move, crossings, gap, np.abs(du), enter, state, chord)
     hit_cell = (hit_keys - low) @ stride
     state[hit_cell] |= HIT
     cell = ray_kernel.marked_cells(state, visits)
@@ -647,10 +815,13 @@ def _observe_one(
         ordered = hit_cell[order]
         first = order[np.r_[True, ordered[1:] != ordered[:-1]]]
         first_hit[np.searchsorted(cell, hit_cell[first])] = points[first]
-    if not k:
-        return _without_forgetting(keys, hits, frees, first_hit)
-    weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
     obs = _without_forgetting(keys, hits, frees, first_hit)
+    if box:
+        shares = np.where(free, weights[cell], 0).astype(np.int64)
+        obs = dataclasses.replace(obs, chord=shares, tail_chord=shares.copy())
+    if not k:
+        return obs
+    weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
     return one_scan_summary(dataclasses.replace(obs, weak_frees=weak), k)
 
 
@@ -766,6 +937,8 @@ def _summarise(
         tail,
         restart_hits,
         restart_hit,
+        obs.chord,
+        obs.tail_chord,
     )
 
 
@@ -807,6 +980,8 @@ def _on_voxels(obs: VoxelObservations, packed: IntArray, union: IntArray) -> Vox
         put(obs.tail_frees, 0),
         put(obs.restart_hits, 0),
         put(obs.restart_hit, np.nan),
+        None if obs.chord is None else put(obs.chord, 0),
+        None if obs.tail_chord is None else put(obs.tail_chord, 0),
     )
 
 
@@ -823,8 +998,14 @@ def _one_run_then_another(
     first_hit = np.where(has_a[:, None], a.first_hit, b.first_hit)
     hits, frees = a.hits + b.hits, a.frees + b.frees
     k = a.clear_scans
+    chord = tail_chord = None
+    if a.chord is not None and b.chord is not None and b.tail_chord is not None:
+        assert a.tail_chord is not None
+        chord = a.chord + b.chord
+        tail_chord = np.where(has_b, b.tail_chord, a.tail_chord + b.chord)
     if not k:
-        return _without_forgetting(a.keys, hits, frees, first_hit)
+        out = _without_forgetting(a.keys, hits, frees, first_hit)
+        return dataclasses.replace(out, chord=chord, tail_chord=tail_chord)
     head = np.where(has_a, a.head_frees, a.strong_frees + b.head_frees)
     tail = np.where(has_b, b.tail_frees, b.strong_frees + a.tail_frees)
     middle = has_a & has_b & (a.tail_frees + b.head_frees >= k)
@@ -841,7 +1022,18 @@ def _one_run_then_another(
     )
     weak = a.weak_frees + b.weak_frees
     return VoxelObservations(
-        a.keys, hits, frees, weak, first_hit, k, head, tail, restart_hits, restart_hit
+        a.keys,
+        hits,
+        frees,
+        weak,
+        first_hit,
+        k,
+        head,
+        tail,
+        restart_hits,
+        restart_hit,
+        chord,
+        tail_chord,
     )
 
 
@@ -973,6 +1165,75 @@ def advance(
     )
     drop = (h0 > 0) & ((h == 0) | replace)
     return VoxelState(h, f, position, replace, drop)
+
+
+CHORD_CAP = (1 << 16) - 1
+"""Most summed chord shares a leaf keeps per voxel (uint16, in ``ray_kernel.CHORD_UNITS``:
+64 whole chords)."""
+
+
+def advance_chord(weights: NDArray[np.integer], obs: VoxelObservations, at: IntArray) -> IntArray:
+    """Apply a run of scans' chord shares to voxels' summed shares, as one by one.
+
+    A voxel's summed shares are those of its free looks since its last return (all of
+    them in a static world, ``clear_scans`` 0), saturated at :data:`CHORD_CAP`: a
+    return restarts the sum (as it restarts the free count), a free look adds its
+    share, weak or strong. Saturated sums of non-negative whole numbers compose, so a
+    run's sums (``obs.chord``, and ``obs.tail_chord`` after its last return) give what
+    its scans one by one would.
+
+    Parameters
+    ----------
+    weights : ndarray of int, shape (p,)
+        The current sums of ``p`` voxel copies.
+    obs : VoxelObservations
+        The run's observations, with chord shares.
+    at : ndarray of int, shape (p,)
+        Each copy's voxel in ``obs``.
+
+    Returns
+    -------
+    ndarray of int64, shape (p,)
+    """
+    if obs.chord is None or obs.tail_chord is None:
+        raise ValueError("the observations hold no chord shares")
+    w0 = weights.astype(np.int64)
+    w = w0 + obs.chord[at]
+    if obs.clear_scans:
+        w = np.where(obs.hits[at] > 0, obs.tail_chord[at], w)
+    out: IntArray = np.minimum(w, CHORD_CAP)
+    return out
+
+
+def free_inputs(
+    frees: NDArray[np.integer],
+    chord: NDArray[np.integer] | None,
+    config: MapConfig,
+) -> tuple[np.ndarray, float]:
+    """The free evidence a leaf GP sees, and its weight per unit.
+
+    Parameters
+    ----------
+    frees : ndarray of int
+        Effective free counts (:func:`effective_counts`).
+    chord : ndarray of int, same shape, or None
+        Summed chord shares (:func:`advance_chord`); used where
+        ``lattice.free_evidence`` is ``"chord"`` (``None`` there: none kept, zeros).
+    config : MapConfig
+
+    Returns
+    -------
+    frees : ndarray
+        ``frees`` itself (looks), or the summed shares where ``frees`` is positive.
+    weight : float
+        ``lattice.free_weight``, or ``lattice.chord_weight / CHORD_UNITS``.
+    """
+    lc = config.lattice
+    if config.free_evidence != "chord":
+        return frees, lc.free_weight
+    if chord is None:
+        return np.zeros(frees.shape, dtype=np.int64), 1.0
+    return np.where(frees > 0, chord, 0), lc.chord_weight / ray_kernel.CHORD_UNITS
 
 
 def effective_counts(

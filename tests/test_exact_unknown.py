@@ -22,6 +22,7 @@ from octolgp.mapping.evidence import map_scans
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf
 from octolgp.observations import observe
+from octolgp.persist.mapfile import VERSION
 from octolgp.sweep import swept_keys
 from octolgp.training import TrainingData
 
@@ -295,7 +296,7 @@ def test_a_version_8_file_reads_back_unchanged_its_leaves_seen_everywhere(
             else:  # a new leaf has its mask
                 assert leaf.evidence.seen.size > 0
         rows = sqlite3.connect(path).execute("SELECT value FROM meta WHERE key = 'version'")
-        assert rows.fetchone()[0] == "9"
+        assert rows.fetchone()[0] == str(VERSION)
 
 
 def test_records_without_a_mask_keep_version_8_bytes() -> None:

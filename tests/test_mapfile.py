@@ -333,7 +333,8 @@ def _as_version_2(path: Path, meta_clear_scans: int | None) -> None:
         online.pop(name, None)
     lattice, exact = stored.pop("lattice"), stored.pop("exact")
     names = ("inducing_spacing", "max_inducing_per_axis", "clear_margin", "tile_voxels")
-    for name in (*names, "min_inducing_per_axis", "fill_voxels", "sweep_angle"):  # came later
+    later = ("min_inducing_per_axis", "fill_voxels", "sweep_angle", "free_evidence", "chord_weight")
+    for name in (*names, *later):  # came later
         lattice.pop(name, None)
     stored["training"].pop("no_return_range", None)  # as did this
     online.update(lattice, **exact, prune_free=0.1192, prune_occupied=0.971)

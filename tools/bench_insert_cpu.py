@@ -10,7 +10,8 @@ Scenes (the same as ``tools/bench_3d.py``'s, hyperparameters given, length scale
 - ``3dtk``: the three real 3DTK scans (``../shared/data/3dtk_example_scans``) through
   ``Scan.downsample(0.2)``, mapped ``--repeats`` times over.
 
-``MapConfig(dim=3, resolution=0.2)`` with ``online.n_jobs`` = ``--threads`` (default 1),
+``MapConfig(dim=3, resolution=0.2)`` with ``online.n_jobs`` = ``--threads`` (default 1) and
+``lattice.free_evidence`` = ``--free-evidence`` where given,
 in memory or, with ``--file``, written to a map file in a temporary folder;
 each insert is timed by ``time.thread_time`` (CPU seconds of the calling thread, less
 sensitive to other processes than wall clock; with ``--threads 2`` the fitting threads'
@@ -67,12 +68,21 @@ def main() -> None:
     )
     parser.add_argument("--threads", type=int, default=1, help="online.n_jobs (default 1)")
     parser.add_argument("--file", action="store_true", help="write the map to a map file")
+    parser.add_argument(
+        "--free-evidence",
+        choices=("looks", "chord"),
+        default=None,
+        help="lattice.free_evidence (default: the config's default)",
+    )
     args = parser.parse_args()
     scans = scene_scans(args.scene)
     hp = Hyperparameters(
         length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0, beta=0.0
     )
     config = MapConfig(dim=3, resolution=0.2)
+    if args.free_evidence is not None:
+        lattice = dataclasses.replace(config.lattice, free_evidence=args.free_evidence)
+        config = dataclasses.replace(config, lattice=lattice)
     config = dataclasses.replace(
         config, hyperparameters=hp, online=dataclasses.replace(config.online, n_jobs=args.threads)
     )

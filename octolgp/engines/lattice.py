@@ -8,7 +8,10 @@ to ``OnlineConfig.clear_scans`` with forgetting on), updated by the newer-eviden
 (:func:`octolgp.observations.newer_evidence_wins`), and one measured return per voxel it
 sees occupied. The leaf's GP sees the returns at their positions and the free voxels at
 their centres, a free look weighing ``LatticeConfig.free_weight`` of a return
-(:func:`octolgp.observations.effective_counts`); it is a sparse GP on an inducing lattice
+(:func:`octolgp.observations.effective_counts`), or, with ``LatticeConfig.free_evidence =
+"chord"``, a free voxel weighing ``chord_weight`` times its summed shares of the free
+segments' chords through the leaf holding it, which the leaf keeps per halo voxel beside
+the counts (:func:`octolgp.observations.advance_chord`); it is a sparse GP on an inducing lattice
 whose kernel tables every leaf shares (:mod:`octolgp.gp.lattice`), so many leaves fit in a
 few matrix products. A leaf's counts are a function of the scans in time order, not of
 how they were grouped into steps, so inserting scans one by one gives the map of
@@ -41,7 +44,7 @@ from octolgp.engines.base import (
 )
 from octolgp.engines.known import grow_seen, halo_pairs, seen_near
 from octolgp.engines.lattice_record import (
-    decode_lattice_swept,
+    decode_lattice_record,
     encode_lattice,
     encode_lattice_many,
 )
@@ -62,7 +65,9 @@ from octolgp.observations import (
     VoxelObservations,
     VoxelState,
     advance,
+    advance_chord,
     effective_counts,
+    free_inputs,
     observe,
     sorted_contains,
 )
@@ -73,6 +78,8 @@ from octolgp.training import IntArray
 _SIZES = struct.Struct("<qq")  # halo voxels of the counts, kept returns
 _NONE_SWEPT = np.zeros(0, dtype=bool)
 _NONE_SWEPT.setflags(write=False)
+_NONE_CHORD = np.zeros(0, dtype=np.uint16)
+_NONE_CHORD.setflags(write=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -92,12 +99,17 @@ class LatticeEvidence:
         Per halo-box voxel, whether a scan swept it between two beams
         (:func:`octolgp.sweep.swept_keys`): known for ``LatticeConfig.fill_voxels``, no
         evidence for the GP. Length 0: none swept.
+    chord : ndarray of uint16, shape (H,) or (0,)
+        Per halo-box voxel, its free looks' summed chord shares since its last return
+        (:func:`octolgp.observations.advance_chord`), in ``ray_kernel.CHORD_UNITS``,
+        saturated (``LatticeConfig.free_evidence = "chord"``). Length 0: none kept.
     """
 
     counts: NDArray[np.uint8]
     hit_keys: IntArray
     hits: FloatArray
     swept: NDArray[np.bool_] = dataclasses.field(default_factory=lambda: _NONE_SWEPT)
+    chord: NDArray[np.uint16] = dataclasses.field(default_factory=lambda: _NONE_CHORD)
 
     @classmethod
     def empty(cls, dim: int) -> LatticeEvidence:
@@ -112,7 +124,8 @@ class LatticeEvidence:
     @property
     def nbytes(self) -> int:
         """Bytes held by the arrays."""
-        return self.counts.nbytes + self.hit_keys.nbytes + self.hits.nbytes + self.swept.nbytes
+        arrays = (self.counts, self.hit_keys, self.hits, self.swept, self.chord)
+        return sum(a.nbytes for a in arrays)
 
 
 def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
@@ -323,6 +336,22 @@ def _stored_counts(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint8]:
     return out
 
 
+def _stored_chord(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint16]:
+    """The summed chord shares of leaves, zero for a new leaf or one keeping none.
+
+    Returns
+    -------
+    ndarray of uint16, shape (len(leaves), n_halo)
+    """
+    out = np.zeros((len(leaves), n_halo), dtype=np.uint16)
+    for j, leaf in enumerate(leaves):  # one iteration per touched leaf
+        if leaf is not None:
+            chord = lattice_evidence(leaf).chord
+            if chord.size == n_halo:
+                out[j] = chord
+    return out
+
+
 def gather_observations(
     obs: VoxelObservations,
     grid: LeafGrid,
@@ -433,6 +462,34 @@ def gather_observations(
     if fresh:  # the pairs whose GP input moved
         moved_in = effective if unit is None else effective[unit]
         stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
+    chord_rows = None
+    if obs.chord is not None:  # the summed chord shares: once per voxel where copies agree
+        chord_rows = _stored_chord(current, n_halo)
+        at_w = inverse * n_halo + flat
+        flat_chord = chord_rows.reshape(-1)
+        w_pairs = flat_chord[at_w]
+        w_unit, w0 = None, w_pairs
+        if unit is not None:
+            rep = np.zeros(obs.n_voxels, dtype=np.int64)
+            rep[voxel] = np.arange(voxel.size)
+            if np.array_equal(w_pairs[rep][voxel], w_pairs):
+                w_unit, w0 = voxel, w_pairs[rep]
+        w_at = voxel if w_unit is None else np.arange(obs.n_voxels)
+        w1 = advance_chord(w0, obs, w_at)
+        if w_unit is None:  # per copy: the counts' units to copies
+            free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
+        else:
+            free0, free1 = ef0, ef1
+        w_input = np.where(free1 > 0, w1, 0) != np.where(free0 > 0, w0, 0)
+        w_stored = w_input | (w1 != w0)
+        if w_unit is not None:
+            w1, w_input, w_stored = w1[w_unit], w_input[w_unit], w_stored[w_unit]
+        flat_chord[at_w] = w1
+        refit[inverse[w_input]] = True
+        new_counts[inverse[w_stored]] = True
+        if fresh:
+            stale_leaf = np.concatenate([stale_leaf, inverse[w_input]])
+            stale_flat = np.concatenate([stale_flat, flat[w_input]])
     new_swept: dict[int, NDArray[np.bool_]] = {}
     if swept_pairs is not None:
         new_swept, gained_at = _sweep_leaves(current, swept_pairs, n_halo)
@@ -464,16 +521,20 @@ def gather_observations(
         row = counts[j]  # a view: the leaf's own array is its copy
         leaf = current[j]  # one iteration per leaf with new counts: arrays of its own
         moved = returns.get(j)
+        chord_j = _NONE_CHORD if chord_rows is None else chord_rows[j].copy()
         if leaf is None:
             hit_keys, hits = moved or (np.zeros(0, np.int64), np.zeros((0, grid.dim)))
             swept_j = new_swept.get(j, _NONE_SWEPT)
-            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j)
+            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
             leaf = Leaf(touched_index[j].copy(), evidence)
         else:
             ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_counts
             hit_keys, hits = (ev.hit_keys, ev.hits) if moved is None else moved
             swept_j = new_swept.get(j, ev.swept)
-            leaf = leaf.with_evidence(LatticeEvidence(row.copy(), hit_keys, hits, swept_j))
+            if chord_rows is None:
+                chord_j = ev.chord
+            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
+            leaf = leaf.with_evidence(evidence)
         if r:
             changed.append((keys[j], leaf))
             if stale is not None:  # tiles keep their values only where the leaf holds all
@@ -843,6 +904,11 @@ def fit_lattice_leaves(
     bounds = np.linspace(0, which.size, runs + 1).round().astype(int)
     parts = [(lo, hi, returns.leaves(lo, hi)) for lo, hi in itertools.pairwise(bounds)]
     flat_stored = stored.reshape(-1)
+    flat_chord = None  # the leaves' summed chord shares, where free evidence is chord
+    if config.free_evidence == "chord":
+        none = np.zeros(n_halo, dtype=np.uint16)
+        flat_chord = _stack([ev.chord if ev.chord.size == n_halo else none for ev in evidence])
+        flat_chord = flat_chord.reshape(-1)
 
     def run(part: tuple[int, int, Returns]) -> tuple[np.ndarray, ...]:
         """Counts → the tiles' latent posteriors and P, as stored (float32), on a pool thread."""
@@ -854,7 +920,13 @@ def fit_lattice_leaves(
             lc.evidence_cap,
             config.clear_scans,
         )
-        mean, var = lattice_posterior(tables, hits, frees, lc.free_weight, tile_points)
+        chord = None
+        if flat_chord is not None:
+            chord = np.take(
+                flat_chord, leaf_of[lo:hi, None] * n_halo + layout.window[tile_of[lo:hi]]
+            )
+        free_in, weight = free_inputs(frees, chord, config)
+        mean, var = lattice_posterior(tables, hits, free_in, weight, tile_points)
         prob = latent_occupancy(mean, var, hp)
         return mean.astype(np.float32), var.astype(np.float32), prob.astype(np.float32)
 
@@ -997,7 +1069,7 @@ class LatticeEngine:
     def record(self, evidence: object, index: IntArray) -> bytes:
         """The compact record (:func:`octolgp.engines.lattice_record.encode_lattice`)."""
         ev = lattice_evidence_of(evidence)
-        return encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, self.grid, ev.swept)
+        return encode_lattice(ev.counts, ev.hit_keys, ev.hits, index, self.grid, ev.swept, ev.chord)
 
     def records(self, evidence: Sequence[object], indices: IntArray) -> list[bytes]:
         """:meth:`record` of many leaves at once (the same bytes)."""
@@ -1005,17 +1077,19 @@ class LatticeEngine:
         counts = [ev.counts for ev in evs]
         keys, hits = [ev.hit_keys for ev in evs], [ev.hits for ev in evs]
         swept = [ev.swept for ev in evs]
+        if any(ev.chord.size for ev in evs):  # leaves keeping chord shares one by one
+            return [self.record(ev, i) for ev, i in zip(evs, indices, strict=True)]
         return encode_lattice_many(counts, keys, hits, indices, self.grid, swept)
 
     def from_record(self, blob: bytes, index: IntArray) -> LatticeEvidence:
         """Inverse of :meth:`record`."""
-        return LatticeEvidence(*decode_lattice_swept(blob, index, self.grid))
+        return LatticeEvidence(*decode_lattice_record(blob, index, self.grid))
 
     def encode(self, evidence: object) -> bytes:
-        """Sizes, the counts (uint8), the kept returns' keys and positions, any swept bitmap.
+        """Sizes, counts (uint8), kept returns' keys and positions, chord shares, swept bitmap.
 
-        The swept voxels' bitmap (``np.packbits``, little bit order) ends the bytes
-        where a voxel is swept.
+        The chord shares follow the returns where the leaf keeps them; the swept voxels'
+        bitmap (``np.packbits``, little bit order) ends the bytes where a voxel is swept.
         """
         ev = lattice_evidence_of(evidence)
         head = _SIZES.pack(ev.counts.shape[1], ev.hit_keys.size)
@@ -1024,6 +1098,8 @@ class LatticeEngine:
             ev.hit_keys.astype("<i8"),
             ev.hits.astype("<f8"),
         ]
+        if ev.chord.size:
+            parts.append(ev.chord.astype("<u2"))
         if ev.swept.any():
             parts.append(np.packbits(ev.swept, bitorder="little"))
         return head + b"".join(p.tobytes() for p in parts)
@@ -1037,10 +1113,16 @@ class LatticeEngine:
             raise OctolgpError("lattice evidence has a bad header")
         specs = [(2 * n_halo, "u1"), (r, "<i8"), (r * dim, "<f8")]
         n_bits = (n_halo + 7) // 8
-        swept = _NONE_SWEPT
-        if n_halo and len(blob) == _SIZES.size + 2 * n_halo + 8 * r * (1 + dim) + n_bits:
+        base = _SIZES.size + 2 * n_halo + 8 * r * (1 + dim)
+        swept, chord = _NONE_SWEPT, _NONE_CHORD
+        if n_halo and len(blob) in (base + n_bits, base + 2 * n_halo + n_bits):
             bits = np.frombuffer(blob, np.uint8, n_bits, len(blob) - n_bits)
             swept = np.unpackbits(bits, count=n_halo, bitorder="little").astype(bool)
             blob = blob[: len(blob) - n_bits]
+        if n_halo and len(blob) == base + 2 * n_halo:
+            chord = np.frombuffer(blob, "<u2", n_halo, base).astype(np.uint16)
+            blob = blob[:base]
         counts, hit_keys, hits = read_arrays(blob, _SIZES.size, specs)
-        return LatticeEvidence(counts.reshape(2, n_halo), hit_keys, hits.reshape(r, dim), swept)
+        return LatticeEvidence(
+            counts.reshape(2, n_halo), hit_keys, hits.reshape(r, dim), swept, chord
+        )

@@ -14,6 +14,8 @@ the map file compresses it:
 - each return's cell inside its voxel, :data:`~octolgp.geometry.keys.RETURN_STEPS` per
   axis (uint16), one axis after the other; or, with flag bit 1 (returns of a leaf made
   before returns were kept at cells, from an older map file), their positions (float64);
+- with flag bit 3, the summed chord shares of the voxels with a count (uint16 each,
+  ``LatticeConfig.free_evidence = "chord"``; records without it keep none);
 - with flag bit 2, a bitmap of the ``H`` halo-box voxels swept between beams
   (``np.packbits``, little bit order; records without it have none swept).
 
@@ -37,6 +39,7 @@ _HEAD = struct.Struct("<IIB")
 _LISTED = 1  # flag: the returns' voxels are listed
 _EXACT = 2  # flag: the returns' positions are stored as float64
 _SWEPT = 4  # flag: a bitmap of the swept voxels ends the record
+_CHORD = 8  # flag: the seen voxels' summed chord shares precede the swept bitmap
 
 
 def _box_origin(index: IntArray, grid: LeafGrid) -> IntArray:
@@ -52,6 +55,7 @@ def encode_lattice(
     index: IntArray,
     grid: LeafGrid,
     swept: np.ndarray | None = None,
+    chord: np.ndarray | None = None,
 ) -> bytes:
     """The compact record of a lattice leaf's evidence (see the module's docstring).
 
@@ -68,6 +72,14 @@ def encode_lattice(
     grid : LeafGrid
     swept : ndarray of bool, shape (H,) or (0,), optional
         The swept voxels (none where ``None`` or empty).
+    chord : ndarray of uint16, shape (H,) or (0,), optional
+        The summed chord shares (none kept where ``None`` or empty); zero wherever a
+        voxel has no count.
+
+    Raises
+    ------
+    ValueError
+        If a voxel without a count has chord shares.
     """
     d = grid.dim
     n_halo = counts.shape[1]
@@ -82,6 +94,12 @@ def encode_lattice(
     exact = not np.array_equal(step_points(steps, keys, grid.resolution, grid.tree_depth), hits)
     swept_bits = _swept_bits(swept, n_halo)
     flags = (_LISTED if listed else 0) | (_EXACT if exact else 0) | (_SWEPT if swept_bits else 0)
+    has_chord = chord is not None and chord.size > 0
+    if has_chord:
+        assert chord is not None
+        if chord.shape != (n_halo,) or np.any(chord[~seen]):
+            raise ValueError("chord shares must be per halo voxel, and zero where none is seen")
+        flags |= _CHORD
     parts = [
         _HEAD.pack(n_halo, hit_keys.size, flags),
         np.packbits(seen, bitorder="little").tobytes(),
@@ -94,6 +112,9 @@ def encode_lattice(
         parts.append(np.asarray(hits, dtype="<f8").tobytes())
     else:
         parts.append(np.ascontiguousarray(steps.T).astype("<u2").tobytes())
+    if has_chord:
+        assert chord is not None
+        parts.append(chord[seen].astype("<u2").tobytes())
     parts.append(swept_bits)
     return b"".join(parts)
 
@@ -133,12 +154,27 @@ def decode_lattice_swept(
     OctolgpError
         On a truncated or inconsistent record.
     """
+    return decode_lattice_record(blob, index, grid)[:4]
+
+
+def decode_lattice_record(
+    blob: bytes, index: IntArray, grid: LeafGrid
+) -> tuple[np.ndarray, IntArray, np.ndarray, np.ndarray, np.ndarray]:
+    """Inverse of :func:`encode_lattice`: ``counts``, ``hit_keys``, ``hits``, ``swept``, ``chord``.
+
+    ``swept`` and ``chord`` are empty (shape (0,)) where the record has none.
+
+    Raises
+    ------
+    OctolgpError
+        On a truncated or inconsistent record.
+    """
     d = grid.dim
     if len(blob) < _HEAD.size:
         raise OctolgpError("lattice evidence is truncated")
     n_halo, r, flags = _HEAD.unpack_from(blob)
     box = grid.side + 2 * grid.halo_voxels
-    if n_halo not in (0, box**d) or flags & ~(_LISTED | _EXACT | _SWEPT):
+    if n_halo not in (0, box**d) or flags & ~(_LISTED | _EXACT | _SWEPT | _CHORD):
         raise OctolgpError("lattice evidence has a bad header")
     at = _HEAD.size
     n_bits = (n_halo + 7) // 8
@@ -150,7 +186,8 @@ def decode_lattice_swept(
     m = int(seen.sum())
     listed, exact = bool(flags & _LISTED), bool(flags & _EXACT)
     n_swept = n_bits if flags & _SWEPT else 0
-    need = 2 * m + (4 * r if listed else 0) + (8 if exact else 2) * r * d + n_swept
+    n_chord = 2 * m if flags & _CHORD else 0
+    need = 2 * m + (4 * r if listed else 0) + (8 if exact else 2) * r * d + n_chord + n_swept
     if len(blob) != at + need:
         raise OctolgpError("lattice evidence has the wrong length")
     counts = np.zeros((2, n_halo), dtype=np.uint8)
@@ -175,7 +212,11 @@ def decode_lattice_swept(
     if n_swept:
         bits = np.frombuffer(blob, np.uint8, n_swept, len(blob) - n_swept)
         swept = np.unpackbits(bits, count=n_halo, bitorder="little").astype(bool)
-    return counts, pack_keys(keys), hits, swept
+    chord = np.zeros(0, dtype=np.uint16)
+    if n_chord:
+        chord = np.zeros(n_halo, dtype=np.uint16)
+        chord[seen] = np.frombuffer(blob, "<u2", m, len(blob) - n_swept - n_chord)
+    return counts, pack_keys(keys), hits, swept, chord
 
 
 def encode_lattice_many(

@@ -32,6 +32,10 @@ FAR = 1
 NEAR = 2
 """Bit of a dense state map: a segment entered the voxel near its end."""
 
+CHORD_UNITS = 1024
+"""Units of a chord share: a voxel's share of a segment's chord through a box is kept as
+a whole number of 1/1024 (rounded to nearest, at least 1), exact when summed."""
+
 AVAILABLE = importlib.util.find_spec("numba") is not None
 """Whether the compiled walk can run (numba is installed; it is imported on first use)."""
 
@@ -49,19 +53,36 @@ def _walk(
     state: NDArray[np.uint8],
     out: IntArray,
     out_near: NDArray[np.bool_],
+    key0: IntArray,
+    sign: IntArray,
+    box: int,
+    weights: NDArray[np.int32],
+    out_weight: IntArray,
 ) -> int:  # pragma: no cover - compiled; tested through the compiled form
-    """Mark (dense) or list (sparse) each segment's voxels; returns how many were listed."""
+    """Mark (dense) or list (sparse) each segment's voxels; returns how many were listed.
+
+    With ``box > 0`` each voxel entered also gets its share of the segment's chord
+    through the box of ``box`` keys per axis holding it (:func:`walk_segments`): added
+    to ``weights`` at its index (dense) or listed in ``out_weight`` (sparse).
+    """
     n, dim = crossings.shape
     nxt = np.empty(dim, dtype=np.int64)
     t_next = np.empty(dim)  # each axis's next crossing (inf: none left), computed once
+    coord = np.empty(dim, dtype=np.int64)
+    weigh = box > 0
+    held = np.empty(3 * max(box, 1) + 1, dtype=np.int64)  # the current box's voxels
+    t_held = np.empty(3 * max(box, 1) + 1)  # ... and where the segment entered each
     k = 0
     for s in range(n):  # one segment per iteration
         idx = start[s]
         near_from = enter_near[s]
         t = 0.0
         remaining = 0
+        n_held = 0
         for a in range(dim):
             nxt[a] = 1
+            if weigh:  # key0 is empty without shares
+                coord[a] = key0[s, a]
             remaining += crossings[s, a]
             t_next[a] = (1 - gap[s, a]) / size[s, a] if crossings[s, a] >= 1 else np.inf
         while True:  # the voxel entered at t, then the next crossing
@@ -72,13 +93,34 @@ def _walk(
                 out[k] = idx
                 out_near[k] = near
                 k += 1
+            if weigh:
+                held[n_held] = idx if dense else k - 1
+                t_held[n_held] = t
+                n_held += 1
+            t_out = 1.0  # where the segment leaves the current box
+            best = -1
+            if remaining:
+                for a in range(dim):  # the nearest crossing; on a tie the last axis
+                    if nxt[a] <= crossings[s, a] and (best < 0 or t_next[a] <= t):
+                        best = a
+                        t = t_next[a]
+                if weigh:
+                    c = coord[best] + sign[s, best]
+                    t_out = t if c // box != coord[best] // box else -1.0
+                    coord[best] = c
+            if weigh and t_out >= 0.0:  # the box's voxels' shares of the chord through it
+                total = t_out - t_held[0]
+                for i in range(n_held):
+                    t_end = t_held[i + 1] if i + 1 < n_held else t_out
+                    share = (t_end - t_held[i]) / total if total > 0.0 else 1.0 / n_held
+                    q = max(1, int(np.floor(share * CHORD_UNITS + 0.5)))
+                    if dense:
+                        weights[held[i]] += q
+                    else:
+                        out_weight[held[i]] = q
+                n_held = 0
             if remaining == 0:
                 break
-            best = -1
-            for a in range(dim):  # the nearest crossing; on a tie the last axis
-                if nxt[a] <= crossings[s, a] and (best < 0 or t_next[a] <= t):
-                    best = a
-                    t = t_next[a]
             idx += move[s, best]
             nxt[best] += 1
             remaining -= 1
@@ -142,7 +184,8 @@ def walk_segments(
     size: FloatArray,
     enter_near: FloatArray,
     state: NDArray[np.uint8] | None,
-) -> tuple[IntArray, NDArray[np.bool_]]:
+    chord: tuple[IntArray, int, NDArray[np.int32] | None] | None = None,
+) -> tuple[IntArray, NDArray[np.bool_], IntArray]:
     """Walk free segments through their voxels, marking or listing each voxel entered.
 
     Parameters
@@ -163,6 +206,14 @@ def walk_segments(
         A dense map over the indices: each voxel entered gets the bit :data:`FAR` or
         :data:`NEAR` (entered far from / near its segment's end) or-ed in, the other
         bits kept. ``None``: list the voxels instead.
+    chord : tuple, optional
+        ``(key0, box, weights)``: each segment's origin voxel key, shape (b, d), the edge
+        of the boxes (keys ``box`` apart per axis, aligned to key 0) and, with ``state``,
+        a dense map of int32 over the indices. Each voxel entered gets its share of the
+        segment's chord through the box holding it: the part of the chord inside the
+        voxel over the chord's length (equal shares where the chord has none), in whole
+        :data:`CHORD_UNITS` rounded to nearest and at least 1; added into ``weights``
+        (dense) or listed. ``None``: no shares.
 
     Returns
     -------
@@ -170,6 +221,9 @@ def walk_segments(
         Listed voxels (empty when marking), each segment's in the order entered.
     near : ndarray of bool, shape (m,)
         Whether each was entered near its segment's end.
+    share : ndarray of int64, shape (m,)
+        The listed voxels' chord shares in :data:`CHORD_UNITS` (empty without ``chord``
+        or when marking).
 
     Raises
     ------
@@ -184,6 +238,16 @@ def walk_segments(
     out = np.empty(total, dtype=np.int64)
     out_near = np.empty(total, dtype=bool)
     none = np.zeros(0, dtype=np.uint8)
+    key0 = np.zeros((0, crossings.shape[1]), dtype=np.int64)
+    box = 0
+    weights = np.zeros(0, dtype=np.int32)
+    out_weight = np.zeros(0, dtype=np.int64)
+    if chord is not None:
+        key0, box, dense_weights = chord
+        if dense_weights is not None:
+            weights = dense_weights
+        if not dense:
+            out_weight = np.empty(total, dtype=np.int64)
     written = _compiled()[0](
         c(start, dtype=np.int64),
         c(move, dtype=np.int64),
@@ -195,5 +259,10 @@ def walk_segments(
         none if state is None else state,
         out,
         out_near,
+        c(key0, dtype=np.int64),
+        c(np.sign(move), dtype=np.int64),
+        int(box),
+        weights,
+        out_weight,
     )
-    return out[:written], out_near[:written]
+    return out[:written], out_near[:written], out_weight[: written if chord else 0]

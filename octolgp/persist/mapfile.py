@@ -73,13 +73,15 @@ from octolgp.persist.lock import WriterLock, held_by_a_writer
 from octolgp.scan import Scan
 
 FORMAT = "octolgp-map"
-VERSION = 9
-READABLE_VERSIONS = ("2", "3", "4", "5", "6", "7", "8", "9")
+VERSION = 10
+READABLE_VERSIONS = ("2", "3", "4", "5", "6", "7", "8", "9", "10")
 """File versions this code opens (2: before the engines owned their leaf records;
 3: before checksums; 4: before compact records; 5: before every beam was rounded and
 journaled beams were sorted; 6: before the journal kept each scan's sensor rotation;
 7: before lattice leaves kept the voxels swept between beams; 8: before exact leaves
-kept their seen masks, so an exact leaf of such a file counts every voxel as seen)."""
+kept their seen masks, so an exact leaf of such a file counts every voxel as seen;
+9: before lattice leaves could keep their voxels' summed chord shares, so a lattice
+leaf of such a file keeps none)."""
 _SQLITE_MAGIC = b"SQLite format 3\x00"
 _HEADER = struct.Struct("<4sBBxxqqqq")  # magic, version, dim, values, pruned, refits, touched
 _OLD_HEADER = struct.Struct("<4sBBxxqqqqqq")  # records 1 and 2: h, s, v, pruned, refits, touched
@@ -276,7 +278,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
     every scan in the journal (``online.journal_scans``), and files from before
     ``training.no_return_range`` kept every beam whole and, before
     ``lattice.fill_voxels``, filled every voxel of a leaf, and files from before
-    ``lattice.sweep_angle`` swept nothing between beams. The other derived fields
+    ``lattice.sweep_angle`` swept nothing between beams, and files from before
+    ``lattice.free_evidence`` weighed every free look alike. The other derived fields
     take the defaults they had when those files were written, which are today's.
 
     Raises
@@ -310,6 +313,8 @@ def stored_config(stored: object, clear_scans: str | None) -> MapConfig:
         lattice["fill_voxels"] = -1  # every voxel of a leaf filled, as then
     if isinstance(lattice, dict) and "sweep_angle" not in lattice:
         lattice["sweep_angle"] = 0.0  # nothing swept between beams, as then
+    if isinstance(lattice, dict) and "free_evidence" not in lattice:
+        lattice["free_evidence"] = "looks"  # each free look weighed alike, as then
     training = stored.setdefault("training", {})
     if isinstance(training, dict) and "no_return_range" not in training:
         training["no_return_range"] = math.inf  # every beam whole, as then

@@ -1,0 +1,244 @@
+"""Chord-weighted free evidence (``LatticeConfig.free_evidence = "chord"``).
+
+Each free segment gives every voxel it passes through the voxel's share of the segment's
+chord through the leaf holding the voxel. The compiled walk and its numpy form give the
+same shares, both within rounding of a dense sampling of the segments; a run of scans'
+summed shares, applied at once, equals the scans applied one by one; and a map built
+scan by scan equals the map built at once.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_observations import _flicker_scans
+from test_online import assert_same_map, config2d, room_scan
+
+from octolgp import OnlineMap
+from octolgp.config import LatticeConfig, MapConfig, OnlineConfig
+from octolgp.engines.base import evidence_arrays
+from octolgp.geometry import ray_kernel
+from octolgp.geometry.keys import pack_keys
+from octolgp.observations import (
+    _scan_codes,
+    _walk_free,
+    advance,
+    advance_chord,
+    merge_observations,
+    observe,
+)
+
+RES = 0.1
+BOX = 16
+SAMPLES = 40_000
+"""Dense samples per segment of the brute force: a box's chord of at least 1/100 of the
+segment gets at least 400, so a share is sampled within 1/400."""
+
+
+def _segments(rng: np.random.Generator, dim: int, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Random segments, some starting on voxel borders and some ending on them."""
+    o = rng.uniform(-1.0, 1.0, (n, dim))
+    e = o + rng.normal(0.0, 1.5, (n, dim))
+    k = n // 8
+    o[:k] = np.round(o[:k] / RES) * RES
+    e[k : 2 * k] = o[k : 2 * k] + np.round(rng.normal(0, 1, (k, dim)) / RES) * RES
+    return o, e
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_compiled_and_numpy_shares_agree(dim: int) -> None:
+    rng = np.random.default_rng(dim)
+    o, e = _segments(rng, dim, 400)
+    scan = rng.integers(0, 3, o.shape[0])
+    near = rng.uniform(0.0, 0.5, o.shape[0])
+    ref = _walk_free(o, e, scan, RES, 16, near, compiled=False, box=BOX)
+    if not ray_kernel.AVAILABLE:
+        pytest.skip("numba is not installed")
+    got = _walk_free(o, e, scan, RES, 16, near, compiled=True, box=BOX)
+    for a, b in zip(ref, got, strict=True):
+        np.testing.assert_array_equal(a, b)
+    plain = _walk_free(o, e, scan, RES, 16, near, compiled=True)
+    np.testing.assert_array_equal(plain[0], got[0])  # shares change no voxel
+    assert plain[2].size == 0
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_shares_are_the_chord_through_each_box(dim: int) -> None:
+    """Against a dense sampling: a voxel's share is the fraction of the samples of its
+    segment's chord through its box that fall in it, within 1/2048 (rounding) + 1/400
+    (sampling); every voxel gets at least one unit; a segment's shares sum to about one
+    per box it crosses."""
+    rng = np.random.default_rng(10 + dim)
+    o, e = _segments(rng, dim, 60)
+    scan = np.arange(o.shape[0])  # one segment per scan: codes are per segment
+    codes, _, shares = _walk_free(o, e, scan, RES, 16, compiled=False, box=BOX)
+    assert shares.min() >= 1
+    sampled: dict[int, float] = {}
+    t = (np.arange(SAMPLES) + 0.5) / SAMPLES
+    for j in range(o.shape[0]):
+        points = o[j] + t[:, None] * (e[j] - o[j])
+        keys = np.floor(points / RES).astype(np.int64) + (1 << 15)
+        box = pack_keys(keys // BOX)
+        code = _scan_codes(pack_keys(keys), np.full(SAMPLES, j), dim)
+        for b in np.unique(box):
+            inside = box == b
+            u, n = np.unique(code[inside], return_counts=True)
+            for c, k in zip(u.tolist(), n.tolist(), strict=True):
+                sampled[c] = sampled.get(c, 0.0) + k / inside.sum()
+    ref = np.array([sampled.get(c, 0.0) for c in codes.tolist()])
+    seen = ref > 0  # voxels only touched at an edge or corner get no sample
+    assert seen.mean() > 0.97
+    err = np.abs(shares[seen] / ray_kernel.CHORD_UNITS - ref[seen])
+    assert err.max() <= 1 / 2048 + 1 / 400
+
+
+@pytest.mark.parametrize("clear", [0, 2, 5])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_summed_shares_at_once_are_the_scans_one_by_one(dim: int, clear: int) -> None:
+    rng = np.random.default_rng(10 * clear + dim)
+    scans = _flicker_scans(rng, dim, 14)
+    config = MapConfig(
+        dim=dim,
+        resolution=RES,
+        online=OnlineConfig(clear_scans=clear),
+        lattice=LatticeConfig(free_evidence="chord"),
+    )
+    state: dict[int, int] = {}
+    for scan in scans:  # the rule, scan after scan
+        obs = observe([scan], config)
+        keys = pack_keys(obs.keys).tolist()
+        before = np.array([state.get(k, 0) for k in keys], dtype=np.int64)
+        after = advance_chord(before, obs, np.arange(len(keys)))
+        state.update(zip(keys, after.tolist(), strict=True))
+    whole = observe(scans, config)
+    merged = merge_observations([observe(scans[:5], config), observe(scans[5:], config)], dim)
+    numpy_form = observe(scans, config, compiled=False)
+    for obs in (whole, merged, numpy_form):
+        assert obs.chord is not None
+        assert obs.tail_chord is not None
+        np.testing.assert_array_equal(obs.chord, whole.chord)
+        np.testing.assert_array_equal(obs.tail_chord, whole.tail_chord)
+        zero = np.zeros(obs.n_voxels, np.int64)
+        got = advance_chord(zero, obs, np.arange(obs.n_voxels))
+        assert dict(zip(pack_keys(obs.keys).tolist(), got.tolist(), strict=True)) == state
+        counts = advance(zero, zero, obs, np.arange(obs.n_voxels), 1)
+        assert np.all((got == 0) | (counts.hits > 0) | (counts.frees > 0))  # a record keeps it
+    assert whole.tail_chord is not None
+    assert whole.chord is not None
+    if clear:  # returns restart the sums
+        assert np.any(whole.tail_chord < whole.chord)
+    assert observe(scans, dataclasses.replace(config, lattice=LatticeConfig())).chord is None
+
+
+def evidence_bytes_of(evidence: object) -> list[bytes]:
+    """Every array of a leaf's evidence, as bytes."""
+    return [a.tobytes() for a in evidence_arrays(evidence)]  # type: ignore[arg-type]
+
+
+def _chord2d(**online: object) -> MapConfig:
+    return dataclasses.replace(config2d(**online), lattice=LatticeConfig(free_evidence="chord"))
+
+
+def test_one_by_one_equals_all_at_once_with_chord_weights() -> None:
+    scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1), (-1, 2)]]
+    a = OnlineMap(_chord2d())
+    for s in scans:
+        a.insert_scan(s)
+    b = OnlineMap(_chord2d())
+    b.insert_batch(scans)
+    assert_same_map(a, b)
+    leaf = next(iter(dict(a.leaves()).values()))
+    assert leaf.evidence.chord.size == leaf.evidence.counts.shape[1]  # type: ignore[attr-defined]
+    looks = OnlineMap(config2d())
+    looks.insert_batch(scans)
+    assert all(leaf.evidence.chord.size == 0 for _, leaf in looks.leaves())  # type: ignore[attr-defined]
+
+
+def test_chord_shares_round_trip_through_records_and_the_map_file(tmp_path: Path) -> None:
+    from octolgp.engines import engine_for
+    from octolgp.mapping.grid import LeafGrid
+    from octolgp.persist.mapfile import decode_leaf, encode_leaf
+
+    scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1), (-1, 2)]]
+    config = _chord2d()
+    path = tmp_path / "chord.octolgp"
+    with OnlineMap(config, path=path) as m:
+        m.insert_batch(scans[:3])
+        codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)
+        leaves = list(m.leaves())
+        for _key, leaf in leaves:
+            ev = leaf.evidence
+            assert ev.chord.any()  # type: ignore[attr-defined]
+            for back in (
+                codec.from_record(codec.record(ev, leaf.index), leaf.index),
+                codec.decode(codec.encode(ev), 2),
+                decode_leaf(encode_leaf(leaf, codec), codec, grid).evidence,
+            ):
+                assert evidence_bytes_of(back) == evidence_bytes_of(ev)
+        many = codec.records(
+            [leaf.evidence for _, leaf in leaves], np.stack([lf.index for _, lf in leaves])
+        )
+        assert many == [codec.record(lf.evidence, lf.index) for _, lf in leaves]
+    with OnlineMap.open(path) as back:
+        assert back.config == m.config
+        back.insert_scan(scans[3])
+        whole = OnlineMap(config)
+        whole.insert_batch(scans)
+        assert_same_map(back, whole)
+
+
+def test_learning_weighs_free_voxels_as_the_fit() -> None:
+    """The voxel observations hyperparameters are learnt on weigh a free voxel
+    ``chord_weight`` times its summed shares, those a leaf keeps after the same scans."""
+    from octolgp.gp.learning import voxel_observations
+
+    scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1)]]
+    config = _chord2d(scan_precision=None).resolve()  # the scans as given
+    points, y, weights = voxel_observations(scans, config)
+    m = OnlineMap(config)
+    m.insert_batch(scans)
+    from octolgp.geometry.keys import coord_to_key
+    from octolgp.mapping.grid import LeafGrid
+
+    grid = LeafGrid.from_config(m.config)
+    box = grid.side + 2 * grid.halo_voxels
+    keys = coord_to_key(points[y < 0], config.resolution, config.tree_depth)
+    leaves = dict(m.leaves())
+    leaf_of = keys // grid.side
+    local = keys - leaf_of * grid.side + grid.halo_voxels
+    flat = local @ (box ** np.arange(2))
+    packed = pack_keys(leaf_of)
+    kept = np.array(
+        [leaves[k].evidence.chord[f] for k, f in zip(packed.tolist(), flat.tolist(), strict=True)]  # type: ignore[attr-defined]
+    )
+    want = config.lattice.chord_weight * kept / ray_kernel.CHORD_UNITS
+    np.testing.assert_allclose(weights[y < 0], want, rtol=1e-12)
+    assert np.all(kept > 0)
+
+
+def test_one_by_one_equals_all_at_once_in_3d() -> None:
+    """3D leaves share a voxel among up to eight halo boxes: every copy gets the sums."""
+    from octolgp import Hyperparameters
+    from octolgp.sim.lidar3d import simulate_lidar_room
+
+    room = simulate_lidar_room(
+        4, seed=0, n_azimuth=128, n_elevation=8, max_range=30.0, range_noise=0.0, n_heldout=1
+    )
+    scans = [s.downsample(0.2) for s in room.scans()]
+    hp = Hyperparameters(
+        length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0, beta=0.0
+    )
+    config = MapConfig(
+        dim=3, resolution=0.2, hyperparameters=hp, lattice=LatticeConfig(free_evidence="chord")
+    )
+    a = OnlineMap(config)
+    for s in scans:
+        a.insert_scan(s)
+    b = OnlineMap(config)
+    b.insert_batch(scans)
+    for m in (a, b):
+        m.occupancy(np.zeros((1, 3)))  # fits the deferred leaves
+    assert_same_map(a, b)
