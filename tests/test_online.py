@@ -501,6 +501,9 @@ def test_bad_online_config(kwargs: dict[str, object], field: str) -> None:
         (LatticeConfig, {"max_inducing_per_axis": 17}, "LatticeConfig.max_inducing_per_axis"),
         (LatticeConfig, {"clear_margin": -0.1}, "LatticeConfig.clear_margin"),
         (LatticeConfig, {"clear_margin": float("inf")}, "LatticeConfig.clear_margin"),
+        (LatticeConfig, {"free_evidence": "rays"}, "LatticeConfig.free_evidence"),
+        (LatticeConfig, {"chord_weight": 0.0}, "LatticeConfig.chord_weight"),
+        (LatticeConfig, {"chord_weight": float("nan")}, "LatticeConfig.chord_weight"),
     ],
 )
 def test_bad_engine_config(section: type, kwargs: dict[str, object], field: str) -> None:
