@@ -286,6 +286,66 @@ def _steps_before(
     return steps
 
 
+def _first_of_each(values: IntArray) -> IntArray:
+    """Indices of each distinct value's first occurrence, ordered by value."""
+    order = np.argsort(values, kind="stable")
+    if order.size == 0:
+        return order
+    ordered = values[order]
+    first: IntArray = order[np.r_[True, ordered[1:] != ordered[:-1]]]
+    return first
+
+
+def _segment_crossings(
+    origins: np.ndarray, free_end: np.ndarray, resolution: float, tree_depth: int
+) -> tuple[IntArray, IntArray, np.ndarray, IntArray, np.ndarray, np.ndarray]:
+    """Each segment's voxel walk, per axis, in voxels: what both walks start from.
+
+    Returns
+    -------
+    key0, key1 : ndarray of int64, shape (b, d)
+        The keys of the origin's and the end's voxels.
+    du : ndarray of shape (b, d)
+        The change from origin to end.
+    crossings : ndarray of int64, shape (b, d)
+        Voxel borders crossed.
+    frac : ndarray of shape (b, d)
+        The origin's offset in its voxel, in ``[0, 1)``.
+    gap : ndarray of shape (b, d)
+        The origin's distance to the first border crossed: border ``i`` at
+        ``t = (i - gap) / |du|``.
+    """
+    u0 = origins / resolution  # coordinates in voxels
+    k0 = np.floor(u0)
+    k1 = np.floor(free_end / resolution)
+    du = free_end / resolution - u0
+    crossings = np.abs(k1 - k0).astype(np.int64)
+    frac = u0 - k0
+    gap = np.where(du < 0, 1.0 - frac, frac)
+    offset = 1 << (tree_depth - 1)
+    return k0.astype(np.int64) + offset, k1.astype(np.int64) + offset, du, crossings, frac, gap
+
+
+def _near_ends(beams: Beams, config: MapConfig) -> np.ndarray | None:
+    """Per free segment, metres before its end within which a free look is weak.
+
+    Within ``clear_margin`` of the beam's return, or anywhere on a no-return beam; ``None``
+    without forgetting (``clear_scans`` 0), where no look is weak.
+    """
+    if not config.clear_scans:
+        return None
+    margin = max(config.clear_margin - config.free_margin, 0.0)  # from the segment's end
+    near: np.ndarray = np.where(beams.is_hit[beams.has_seg], margin, np.inf)
+    return near
+
+
+def _enter_near(near: np.ndarray, origins: np.ndarray, free_end: np.ndarray) -> np.ndarray:
+    """Per segment, the ``t`` from which a voxel entered is within ``near`` of its end."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out: np.ndarray = 1.0 - near / np.linalg.norm(free_end - origins, axis=1)
+    return out
+
+
 def _free_codes(
     origins: np.ndarray,
     free_end: np.ndarray,
@@ -426,21 +486,15 @@ def _walk_free(
     n_seg, dim = origins.shape
     if n_seg == 0:
         return none, none, none
-    u0 = origins / resolution  # coordinates in voxels
-    k0 = np.floor(u0)
-    k1 = np.floor(free_end / resolution)
-    du = free_end / resolution - u0
-    crossings = np.abs(k1 - k0).astype(np.int64)  # (b, d) borders crossed per axis
-    frac = u0 - k0
+    key0, key1, du, crossings, frac, gap = _segment_crossings(
+        origins, free_end, resolution, tree_depth
+    )
     step = np.where(du < 0, -1, 1)
-    gap = np.where(du < 0, 1.0 - frac, frac)  # border i of an axis at t = (i - gap) / |du|
-    offset = 1 << (tree_depth - 1)
-    key0 = k0.astype(np.int64) + offset
     scans, which = np.unique(scan, return_inverse=True)
     low = np.full((scans.size, dim), np.iinfo(np.int64).max)
     high = np.full((scans.size, dim), np.iinfo(np.int64).min)
-    np.minimum.at(low, which, np.minimum(key0, k1.astype(np.int64) + offset))
-    np.maximum.at(high, which, np.maximum(key0, k1.astype(np.int64) + offset))
+    np.minimum.at(low, which, np.minimum(key0, key1))
+    np.maximum.at(high, which, np.maximum(key0, key1))
     extent = high - low + 1  # (s, d) each scan's box of keys
     cells = np.prod(extent, axis=1)
     per_seg = crossings.sum(axis=1) + 1  # voxels per segment
@@ -454,8 +508,7 @@ def _walk_free(
         stride = np.broadcast_to(np.int64(1) << (KEY_BITS * np.arange(dim)), (n_seg, dim))
         start = (scan << (KEY_BITS * dim)) | (key0 << (KEY_BITS * np.arange(dim))).sum(axis=1)
     if near is not None:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            enter_near = 1.0 - near / np.linalg.norm(free_end - origins, axis=1)
+        enter_near = _enter_near(near, origins, free_end)
     columns = [
         [np.ascontiguousarray(x[:, a]) for a in range(dim)]
         for x in (crossings, frac, du, np.abs(du), gap, (step * stride).astype(float))
@@ -651,16 +704,12 @@ def observe(
     hit_points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
     # one (scan, voxel) code per return; the first return of each, in beam order
     all_codes = _scan_codes(hit_packed, hit_scan, dim)
-    order = np.argsort(all_codes, kind="stable")
-    ordered = all_codes[order]
-    first_of_code = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
+    first_of_code = _first_of_each(all_codes)
     hit_codes = all_codes[first_of_code]
     code_points = hit_points[first_of_code]
     seg = beams.has_seg
     k = config.clear_scans
-    # weak: within clear_margin of the beam's return, or anywhere on a no-return beam
-    margin = max(config.clear_margin - config.free_margin, 0.0)  # from the segment's end
-    near = np.where(beams.is_hit[seg], margin, np.inf) if k else None
+    near = _near_ends(beams, config)
     box = chord_box(config)
     free_codes, weak_codes, shares = _walk_free(
         origins[seg],
@@ -684,9 +733,7 @@ def observe(
     free_vox, free_n = _unique_counts(free_codes & mask, one)
     weak_vox, weak_n = _unique_counts(weak_codes & mask, one)
     # the first return per voxel: codes ascend by scan, a stable sort keeps that order
-    order = np.argsort(hit_codes & mask, kind="stable")
-    ordered = (hit_codes & mask)[order]
-    first = order[np.r_[True, ordered[1:] != ordered[:-1]]] if order.size else order
+    first = _first_of_each(hit_codes & mask)
     obs = _combine(hit_vox, hit_n, free_vox, free_n, code_points[first], dim)
     chord = _chord_sums(obs, hit_codes, free_codes, shares, dim) if box else None
     if k:
@@ -761,18 +808,12 @@ def _observe_one(
         (``DENSE_CELLS``, ``DENSE_PER_VOXEL``): the general path serves.
     """
     dim, res, depth = config.dim, config.resolution, config.tree_depth
-    offset = 1 << (depth - 1)
     returns = ends[beams.is_hit]
     hit_keys = _voxel_keys(returns, res, depth)
     seg = beams.has_seg
     start_pt, end_pt = origins[seg], beams.free_end[seg]
-    u0 = start_pt / res  # as _free_codes computes them, so the walk is the same
-    k0 = np.floor(u0)
-    k1 = np.floor(end_pt / res)
-    du = end_pt / res - u0
-    crossings = np.abs(k1 - k0).astype(np.int64)
-    key0 = k0.astype(np.int64) + offset
-    corners = np.concatenate([key0, k1.astype(np.int64) + offset, hit_keys])
+    key0, key1, du, crossings, _, gap = _segment_crossings(start_pt, end_pt, res, depth)
+    corners = np.concatenate([key0, key1, hit_keys])
     if corners.shape[0] == 0:
         return None
     low, high = corners.min(axis=0), corners.max(axis=0)
@@ -782,16 +823,9 @@ def _observe_one(
     if cells > min(DENSE_CELLS, DENSE_PER_VOXEL * visits):
         return None
     stride = np.cumprod(np.r_[1, extent[:-1]])
-    frac = u0 - k0
-    gap = np.where(du < 0, 1.0 - frac, frac)
     move = np.where(du < 0, -stride, stride)
-    enter = np.full(key0.shape[0], np.inf)
-    k = config.clear_scans
-    if k:  # weak: within clear_margin of the return, or anywhere on a no-return beam
-        margin = max(config.clear_margin - config.free_margin, 0.0)
-        near = np.where(beams.is_hit[seg], margin, np.inf)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            enter = 1.0 - near / np.linalg.norm(end_pt - start_pt, axis=1)
+    near = _near_ends(beams, config)
+    enter = np.full(key0.shape[0], np.inf) if near is None else _enter_near(near, start_pt, end_pt)
     state = ray_kernel.state_map(cells)
     start = (key0 - low) @ stride
     box = chord_box(config)
@@ -811,18 +845,16 @@ def _observe_one(
     first_hit = np.full((cell.size, dim), np.nan)
     if hit_cell.size:  # the first return per voxel, in beam order, at the file's precision
         points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
-        order = np.argsort(hit_cell, kind="stable")
-        ordered = hit_cell[order]
-        first = order[np.r_[True, ordered[1:] != ordered[:-1]]]
+        first = _first_of_each(hit_cell)
         first_hit[np.searchsorted(cell, hit_cell[first])] = points[first]
     obs = _without_forgetting(keys, hits, frees, first_hit)
     if box:
         shares = np.where(free, weights[cell], 0).astype(np.int64)
         obs = dataclasses.replace(obs, chord=shares, tail_chord=shares.copy())
-    if not k:
+    if near is None:  # without forgetting: no look is weak
         return obs
     weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
-    return one_scan_summary(dataclasses.replace(obs, weak_frees=weak), k)
+    return one_scan_summary(dataclasses.replace(obs, weak_frees=weak), config.clear_scans)
 
 
 def one_scan_summary(obs: VoxelObservations, clear_scans: int) -> VoxelObservations:

@@ -467,14 +467,10 @@ def gather_observations(
         chord_rows = _stored_chord(current, n_halo)
         at_w = inverse * n_halo + flat
         flat_chord = chord_rows.reshape(-1)
-        w_pairs = flat_chord[at_w]
-        w_unit, w0 = None, w_pairs
-        if unit is not None:
-            rep = np.zeros(obs.n_voxels, dtype=np.int64)
-            rep[voxel] = np.arange(voxel.size)
-            if np.array_equal(w_pairs[rep][voxel], w_pairs):
-                w_unit, w0 = voxel, w_pairs[rep]
-        w_at = voxel if w_unit is None else np.arange(obs.n_voxels)
+        w_pairs = flat_chord[at_w].astype(np.int64)
+        w_unit, w_at, w0 = None, voxel, w_pairs
+        if unit is not None:  # per voxel where the counts' copies agree and the sums' too
+            w_unit, w_at, w0, _ = _voxel_units(w_pairs, w_pairs, voxel, obs.n_voxels)
         w1 = advance_chord(w0, obs, w_at)
         if w_unit is None:  # per copy: the counts' units to copies
             free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])

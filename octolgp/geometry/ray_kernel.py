@@ -238,12 +238,13 @@ def walk_segments(
     out = np.empty(total, dtype=np.int64)
     out_near = np.empty(total, dtype=bool)
     none = np.zeros(0, dtype=np.uint8)
-    key0 = np.zeros((0, crossings.shape[1]), dtype=np.int64)
+    key0 = sign = np.zeros((0, crossings.shape[1]), dtype=np.int64)
     box = 0
     weights = np.zeros(0, dtype=np.int32)
     out_weight = np.zeros(0, dtype=np.int64)
     if chord is not None:
         key0, box, dense_weights = chord
+        sign = np.sign(move)
         if dense_weights is not None:
             weights = dense_weights
         if not dense:
@@ -260,7 +261,7 @@ def walk_segments(
         out,
         out_near,
         c(key0, dtype=np.int64),
-        c(np.sign(move), dtype=np.int64),
+        c(sign, dtype=np.int64),
         int(box),
         weights,
         out_weight,
