@@ -190,33 +190,27 @@ def test_chord_shares_round_trip_through_records_and_the_map_file(tmp_path: Path
         assert_same_map(back, whole)
 
 
-def test_learning_weighs_free_voxels_as_the_fit() -> None:
-    """The voxel observations hyperparameters are learnt on weigh a free voxel
-    ``chord_weight`` times its summed shares, those a leaf keeps after the same scans."""
+def test_learning_weighs_free_voxels_by_their_looks() -> None:
+    """The voxel observations hyperparameters are learnt on are the same with chord
+    weights as with looks: each free voxel weighs ``free_weight`` times its counted looks,
+    whichever weighting the leaves fit with."""
     from octolgp.gp.learning import voxel_observations
 
     scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1)]]
     config = _chord2d(scan_precision=None).resolve()  # the scans as given
-    points, y, weights = voxel_observations(scans, config)
-    m = OnlineMap(config)
-    m.insert_batch(scans)
-    from octolgp.geometry.keys import coord_to_key
-    from octolgp.mapping.grid import LeafGrid
-
-    grid = LeafGrid.from_config(m.config)
-    box = grid.side + 2 * grid.halo_voxels
-    keys = coord_to_key(points[y < 0], config.resolution, config.tree_depth)
-    leaves = dict(m.leaves())
-    leaf_of = keys // grid.side
-    local = keys - leaf_of * grid.side + grid.halo_voxels
-    flat = local @ (box ** np.arange(2))
-    packed = pack_keys(leaf_of)
-    kept = np.array(
-        [leaves[k].evidence.chord[f] for k, f in zip(packed.tolist(), flat.tolist(), strict=True)]  # type: ignore[attr-defined]
+    looks = dataclasses.replace(
+        config, lattice=dataclasses.replace(config.lattice, free_evidence="looks")
     )
-    want = config.lattice.chord_weight * kept / ray_kernel.CHORD_UNITS
-    np.testing.assert_allclose(weights[y < 0], want, rtol=1e-12)
-    assert np.all(kept > 0)
+    got = voxel_observations(scans, config)
+    want = voxel_observations(scans, looks)
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    _, y, weights = got
+    # every free voxel weighs a whole number of looks, at most clear_scans
+    looks_seen = weights[y < 0] / config.lattice.free_weight
+    np.testing.assert_allclose(looks_seen, np.round(looks_seen), atol=1e-9)
+    assert np.all((looks_seen >= 1) & (looks_seen <= max(1, config.clear_scans)))
+    assert np.any(looks_seen > 1)
 
 
 def test_one_by_one_equals_all_at_once_in_3d() -> None:

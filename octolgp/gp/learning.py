@@ -11,8 +11,8 @@ models (``LearningConfig.model``):
 - *voxels* (the lattice engine's own model, its default): every observed voxel is a
   point observation, a voxel seen occupied at its kept return (target +1, noise
   ``σn² / h`` for ``h`` counted returns), one seen free at its centre (target −1, noise
-  ``σn² / (free_weight f)`` for ``f`` counted free looks, or ``σn² / (chord_weight w)``
-  for summed chord shares ``w`` with ``free_evidence = "chord"``); each set is the nearest
+  ``σn² / (free_weight f)`` for ``f`` counted free looks, whichever ``free_evidence``
+  the leaves fit with); each set is the nearest
   occupied voxels around a seed and the free voxels within the same radius, and the
   scans are observed only in balls around the seeds (most of a long beam's voxels
   are far from every seed). Point kernels only: a set of ``n`` items is an
@@ -47,7 +47,7 @@ from octolgp.gp.likelihood import log_marginal_likelihood, loo_log_predictive, l
 from octolgp.gp.plsc import fit_plsc
 from octolgp.gp.quadrature import QuadratureSet, cluster_items, points_set, quadrature_spacing
 from octolgp.memory import release_free_memory
-from octolgp.observations import advance, advance_chord, effective_counts, free_inputs, observe
+from octolgp.observations import advance, effective_counts, observe
 from octolgp.partition import Cluster, partition
 from octolgp.scan import FloatArray, Scan
 from octolgp.training import (
@@ -289,9 +289,13 @@ def voxel_observations(
     (:func:`octolgp.observations.advance` from nothing, then
     :func:`~octolgp.observations.effective_counts`): a voxel with a return is occupied,
     at its kept return, weighing its return count; one seen only free is free, at its
-    centre, weighing ``lattice.free_weight`` times its free count (with
-    ``lattice.free_evidence = "chord"``, ``lattice.chord_weight`` times its summed chord
-    shares, :func:`octolgp.observations.free_inputs`). Where later free looks
+    centre, weighing ``lattice.free_weight`` times its free count. The sets weigh free
+    voxels so whichever ``lattice.free_evidence`` the leaves fit with: a chord share is
+    a voxel's part of a chord through the leaf holding it, and a learning set is a ball
+    spanning several leaves, so chord weights would tie the sets' balance of free and
+    occupied evidence to where the leaf borders fall; on sparse scans, where most chords
+    cross a leaf whole and each voxel's share is small, that balance leaves too little
+    free evidence to bound the length scale. Where later free looks
     forgot every return (a world that changed while the scans were taken), the voxels
     with returns count as occupied anyway, so that there is something to learn from.
     With a ``region`` (:func:`octolgp.observations.observe`'s) only its voxels are
@@ -306,12 +310,12 @@ def voxel_observations(
     weights : ndarray of shape (n,)
         ``w`` of the observation noise ``σn² / w``.
     """
-    obs = observe(scans, config, region)
+    looks = dataclasses.replace(config.lattice, free_evidence="looks")
+    obs = observe(scans, dataclasses.replace(config, lattice=looks), region)
     cap = config.lattice.evidence_cap
     zero = np.zeros(obs.n_voxels, dtype=np.int64)
     state = advance(zero, zero, obs, np.arange(obs.n_voxels), cap)
     hits, frees = effective_counts(state.hits, state.frees, cap, config.clear_scans)
-    chord = None if obs.chord is None else advance_chord(zero, obs, np.arange(obs.n_voxels))
     kept = state.position
     if not np.any(hits) and np.any(obs.hits):  # every return forgotten
         hits, kept = np.minimum(obs.hits, cap), obs.first_hit
@@ -322,8 +326,8 @@ def voxel_observations(
     at = np.where(np.isnan(kept[occupied]), centres[occupied], kept[occupied])
     points = np.concatenate([at, centres[free]])
     y = np.concatenate([np.ones(int(occupied.sum())), -np.ones(int(free.sum()))])
-    free_in, free_weight = free_inputs(frees, chord, config)
-    weights = np.concatenate([hits[occupied].astype(np.float64), free_weight * free_in[free]])
+    free_weight = config.lattice.free_weight
+    weights = np.concatenate([hits[occupied].astype(np.float64), free_weight * frees[free]])
     return points, y, weights
 
 
