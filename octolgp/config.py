@@ -487,15 +487,17 @@ class LatticeConfig:
         counted free look weighs ``free_weight``
         (:func:`~octolgp.observations.effective_counts`). ``"chord"``: each scan's free
         segment gives every voxel it passes through the voxel's share of the segment's
-        chord through the leaf holding the voxel (the part of the chord inside the voxel
-        over the chord's length in the leaf), the leaf keeps per voxel the sum of those
-        shares since the voxel's last return, and a free voxel weighs ``chord_weight``
-        times it: a long chord through empty space is spread thin over its voxels, a short
-        one ending before a return is concentrated on few, as a free piece of the exact
-        engine is one observation per leaf box. ``None`` (default):
+        chord through the key-aligned box of 16 voxels a side holding the voxel
+        (:data:`~octolgp.observations.CHORD_BOX`; the part of the chord inside the voxel
+        over the chord's length in the box), the leaf keeps per voxel the sum of those
+        shares over the free looks its free count counts (up to ``clear_scans`` since the
+        voxel's last return; ``evidence_cap`` in a static world), and a free voxel weighs
+        ``chord_weight`` times it: a long chord through empty space is spread thin over its
+        voxels, a short one ending before a return is concentrated on few, as a free piece
+        of the exact engine is one observation per leaf box. ``None`` (default):
         :data:`DEFAULT_FREE_EVIDENCE` (files written before this setting: ``"looks"``).
     chord_weight : float
-        With ``free_evidence = "chord"``, the weight of a whole chord through a leaf (a
+        With ``free_evidence = "chord"``, the weight of a whole chord through a box (a
         free voxel weighs this times its summed shares). In [1e-6, 1e6]. Default 0.03.
     inducing_spacing : float or None
         Largest spacing of the inducing lattice as a fraction of the length scale, at
@@ -629,8 +631,11 @@ DEFAULT_FILL_VOXELS = MappingProxyType({2: 2, 3: 1})
 :class:`LatticeConfig`): the most the default tiles allow (BENCHMARKS.md, "Honest
 unknown")."""
 
-DEFAULT_FREE_EVIDENCE = MappingProxyType({2: "looks", 3: "looks"})
-"""The default ``free_evidence`` per dimension (see :class:`LatticeConfig`)."""
+DEFAULT_FREE_EVIDENCE = MappingProxyType({2: "looks", 3: "chord"})
+"""The default ``free_evidence`` per dimension (see :class:`LatticeConfig`): chord shares in
+3D, where a sparse scan's beams cross a leaf far apart and a voxel weighed per look lets
+a long free chord outweigh the returns it passes near; looks in 2D, where chord weights
+at the 3D ``chord_weight`` leave a cell at an opened door's frame reading occupied."""
 
 DEFAULT_SWEEP_ANGLE = MappingProxyType({2: 2.5, 3: 0.0})
 """The default ``sweep_angle`` in degrees per dimension (see :class:`LatticeConfig`): in 2D,

@@ -105,14 +105,19 @@ class VoxelObservations:
         predecessors are forgotten); else 0.
     restart_hit : ndarray of shape (n, d)
         The first return of the scan that starts ``restart_hits``; NaN where it is 0.
-    chord : ndarray of int64, shape (n,), optional
-        Chord weights (``LatticeConfig.free_evidence = "chord"``): per voxel, the sum over
-        the scans seeing it free of their free segments' shares of their chords through
-        the leaf holding it (:func:`_walk_free`), in ``ray_kernel.CHORD_UNITS``.
-        ``None``: not observed.
+    chord : ndarray of int64, shape (n, c), optional
+        Chord weights (``LatticeConfig.free_evidence = "chord"``), for the ``c`` free
+        looks a voxel's free count counts (:func:`chord_looks`): ``chord[i, m - 1]`` is
+        the sum, over the first ``m`` scans seeing voxel ``i`` free, of their free
+        segments' shares of their chords through the box of :data:`CHORD_BOX` keys
+        holding it (:func:`_walk_free`), in ``ray_kernel.CHORD_UNITS`` (the total where
+        fewer scans saw it free). ``None``: not observed.
+    strong_chord : ndarray of int64, shape (n, c), optional
+        The same over the scans seeing the voxel free that count towards forgetting
+        (not only weakly).
     tail_chord : ndarray of int64, shape (n,), optional
-        The part of ``chord`` from the scans after the voxel's last return (all of it
-        where ``hits`` is 0).
+        The same over the first ``c`` of those after the voxel's last return (from the
+        run's start where ``hits`` is 0). Zeros when ``clear_scans`` is 0.
     """
 
     keys: IntArray
@@ -126,6 +131,7 @@ class VoxelObservations:
     restart_hits: IntArray
     restart_hit: np.ndarray
     chord: IntArray | None = None
+    strong_chord: IntArray | None = None
     tail_chord: IntArray | None = None
 
     @property
@@ -735,7 +741,12 @@ def observe(
     # the first return per voxel: codes ascend by scan, a stable sort keeps that order
     first = _first_of_each(hit_codes & mask)
     obs = _combine(hit_vox, hit_n, free_vox, free_n, code_points[first], dim)
-    chord = _chord_sums(obs, hit_codes, free_codes, shares, dim) if box else None
+    chord = None
+    if box:
+        strong_look = (
+            ~sorted_contains(weak_codes, free_codes) if k else np.ones(free_codes.size, bool)
+        )
+        chord = _chord_sums(obs, hit_codes, free_codes, shares, strong_look, config)
     if k:
         weak = np.zeros(obs.hits.size, dtype=np.int64)
         weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
@@ -746,39 +757,79 @@ def observe(
             strong = free_codes[~sorted_contains(weak_codes, free_codes)]
             obs = _summarise(obs, hit_codes, code_points, strong, k)
     if chord is not None:
-        obs = dataclasses.replace(obs, chord=chord[0], tail_chord=chord[1])
+        obs = dataclasses.replace(obs, chord=chord[0], strong_chord=chord[1], tail_chord=chord[2])
     return obs
+
+
+CHORD_BOX = 16
+"""Edge, in voxels, of the key-aligned boxes free segments' chords are shared in: the
+default leaf's edge in 2D and 3D. A constant, not the leaf's edge, so that the map does
+not depend on ``online.leaf_depth`` (tile-sized leaves give the map of tiled ones)."""
 
 
 def chord_box(config: MapConfig) -> int:
     """Edge, in voxels, of the boxes free segments' chords are shared in (0: no shares).
 
-    A leaf's edge where ``lattice.free_evidence`` is ``"chord"`` and the engine is the
-    lattice engine.
+    :data:`CHORD_BOX` where ``lattice.free_evidence`` is ``"chord"`` and the engine is
+    the lattice engine.
     """
     if config.online.engine != "lattice" or config.free_evidence != "chord":
         return 0
-    return 1 << (config.tree_depth - config.leaf_depth)
+    return CHORD_BOX
+
+
+def chord_looks(config: MapConfig) -> int:
+    """Free looks a voxel's chord sum covers: those its free count counts.
+
+    The free count saturates at ``clear_scans`` with newer evidence winning, else at
+    ``lattice.evidence_cap`` (:func:`advance`); the summed shares stop where it stops,
+    so that a revisit that changes no count changes no sum (and refits nothing).
+    """
+    return config.clear_scans or config.lattice.evidence_cap
 
 
 def _chord_sums(
-    obs: VoxelObservations, hit_codes: IntArray, free_codes: IntArray, shares: IntArray, dim: int
-) -> tuple[IntArray, IntArray]:
-    """Per voxel of ``obs``: its free looks' summed chord shares, and those after its last return.
+    obs: VoxelObservations,
+    hit_codes: IntArray,
+    free_codes: IntArray,
+    shares: IntArray,
+    strong: NDArray[np.bool_],
+    config: MapConfig,
+) -> tuple[IntArray, IntArray, IntArray]:
+    """Per voxel of ``obs``: ``chord``, ``strong_chord`` and ``tail_chord`` (see its fields).
 
     ``hit_codes`` and ``free_codes`` are the (scan, voxel) codes seen occupied and free,
-    ascending, ``shares`` the free ones' summed shares.
+    ascending, ``shares`` the free ones' summed shares and ``strong`` whether each counts
+    towards forgetting.
     """
-    bits = KEY_BITS * dim
+    c = chord_looks(config)
+    bits = KEY_BITS * config.dim
     mask = (1 << bits) - 1
     packed = pack_keys(obs.keys)
-    voxel = np.searchsorted(packed, free_codes & mask)
-    chord = np.bincount(voxel, shares, minlength=packed.size).astype(np.int64)
-    last_hit = np.full(packed.size, -1, dtype=np.int64)
+    n = packed.size
+    # the looks by voxel, then scan (the scan number fits below the voxel's bits)
+    order = np.argsort(((free_codes & mask) << 12) | (free_codes >> bits))
+    voxel = np.searchsorted(packed, free_codes[order] & mask)
+    scan, share, strong = free_codes[order] >> bits, shares[order], strong[order]
+    last_hit = np.full(n, -1, dtype=np.int64)
     np.maximum.at(last_hit, np.searchsorted(packed, hit_codes & mask), hit_codes >> bits)
-    after = (free_codes >> bits) > last_hit[voxel]
-    tail = np.bincount(voxel[after], shares[after], minlength=packed.size).astype(np.int64)
-    return chord, tail
+    starts = np.searchsorted(voxel, np.arange(n))
+
+    def prefix(counted: NDArray[np.bool_]) -> IntArray:
+        """Per voxel, the summed shares of its first m counted looks, m = 1..c."""
+        before: IntArray = np.cumsum(counted) - counted  # counted looks before each look
+        rank = before - np.r_[before, 0][starts][voxel]
+        use = counted & (rank < c)
+        sums = np.bincount(voxel[use] * c + rank[use], share[use], minlength=n * c)
+        out: IntArray = np.cumsum(sums.reshape(n, c).astype(np.int64), axis=1)
+        return out
+
+    every = prefix(np.ones(voxel.size, dtype=bool))
+    strong_sums = prefix(strong)
+    if not config.clear_scans:
+        return every, strong_sums, np.zeros(n, dtype=np.int64)
+    tail = prefix(strong & (scan > last_hit[voxel]))[:, -1]
+    return every, strong_sums, tail
 
 
 def _observe_one(
@@ -848,13 +899,30 @@ def _observe_one(
         first = _first_of_each(hit_cell)
         first_hit[np.searchsorted(cell, hit_cell[first])] = points[first]
     obs = _without_forgetting(keys, hits, frees, first_hit)
+    if near is not None:
+        weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
+        obs = one_scan_summary(dataclasses.replace(obs, weak_frees=weak), config.clear_scans)
     if box:
         shares = np.where(free, weights[cell], 0).astype(np.int64)
-        obs = dataclasses.replace(obs, chord=shares, tail_chord=shares.copy())
-    if near is None:  # without forgetting: no look is weak
-        return obs
-    weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
-    return one_scan_summary(dataclasses.replace(obs, weak_frees=weak), config.clear_scans)
+        obs = one_scan_chord(obs, shares, chord_looks(config))
+    return obs
+
+
+def one_scan_chord(obs: VoxelObservations, shares: IntArray, looks: int) -> VoxelObservations:
+    """One scan's observations with its summed chord shares per voxel (0 where not free).
+
+    In one scan a voxel is seen free at most once: its first ``m`` looks are that one
+    for every ``m`` (the columns are views of one array), strong where it is not only
+    weak, and none follows a return.
+    """
+    strong = np.where(obs.strong_frees > 0, shares, 0)
+    n = shares.size
+    return dataclasses.replace(
+        obs,
+        chord=np.broadcast_to(shares[:, None], (n, looks)),
+        strong_chord=np.broadcast_to(strong[:, None], (n, looks)),
+        tail_chord=strong if obs.clear_scans else np.zeros(n, dtype=np.int64),
+    )
 
 
 def one_scan_summary(obs: VoxelObservations, clear_scans: int) -> VoxelObservations:
@@ -970,6 +1038,7 @@ def _summarise(
         restart_hits,
         restart_hit,
         obs.chord,
+        obs.strong_chord,
         obs.tail_chord,
     )
 
@@ -1013,6 +1082,7 @@ def _on_voxels(obs: VoxelObservations, packed: IntArray, union: IntArray) -> Vox
         put(obs.restart_hits, 0),
         put(obs.restart_hit, np.nan),
         None if obs.chord is None else put(obs.chord, 0),
+        None if obs.strong_chord is None else put(obs.strong_chord, 0),
         None if obs.tail_chord is None else put(obs.tail_chord, 0),
     )
 
@@ -1030,14 +1100,22 @@ def _one_run_then_another(
     first_hit = np.where(has_a[:, None], a.first_hit, b.first_hit)
     hits, frees = a.hits + b.hits, a.frees + b.frees
     k = a.clear_scans
-    chord = tail_chord = None
-    if a.chord is not None and b.chord is not None and b.tail_chord is not None:
+    chord = strong_chord = tail_chord = None
+    if a.chord is not None and b.chord is not None:
+        assert a.strong_chord is not None
         assert a.tail_chord is not None
-        chord = a.chord + b.chord
-        tail_chord = np.where(has_b, b.tail_chord, a.tail_chord + b.chord)
+        assert b.strong_chord is not None
+        assert b.tail_chord is not None
+        chord = _then(a.chord, a.frees, b.chord)
+        strong_chord = _then(a.strong_chord, a.strong_frees, b.strong_chord)
+        rows = np.arange(a.hits.size)
+        carried = a.tail_chord + _first_looks(b.strong_chord, rows, k - a.tail_frees)
+        tail_chord = np.where(has_b, b.tail_chord, carried) if k else a.tail_chord
     if not k:
         out = _without_forgetting(a.keys, hits, frees, first_hit)
-        return dataclasses.replace(out, chord=chord, tail_chord=tail_chord)
+        return dataclasses.replace(
+            out, chord=chord, strong_chord=strong_chord, tail_chord=tail_chord
+        )
     head = np.where(has_a, a.head_frees, a.strong_frees + b.head_frees)
     tail = np.where(has_b, b.tail_frees, b.strong_frees + a.tail_frees)
     middle = has_a & has_b & (a.tail_frees + b.head_frees >= k)
@@ -1065,8 +1143,30 @@ def _one_run_then_another(
         restart_hits,
         restart_hit,
         chord,
+        strong_chord,
         tail_chord,
     )
+
+
+def _first_looks(prefix: IntArray, rows: IntArray, m: IntArray) -> IntArray:
+    """Rows of ``prefix`` (:class:`VoxelObservations`' ``chord``): their first ``m`` looks' sums.
+
+    ``m`` is clipped to ``[0, c]``; 0 looks sum to 0.
+    """
+    c = prefix.shape[1]
+    out: IntArray = np.where(m > 0, prefix[rows, np.clip(m - 1, 0, c - 1)], 0)
+    return out
+
+
+def _then(a: IntArray, a_looks: IntArray, b: IntArray) -> IntArray:
+    """Prefix sums of run ``a``'s looks (``a_looks`` of them) followed by run ``b``'s."""
+    c = a.shape[1]
+    m = np.arange(1, c + 1)[None, :]
+    rest = m - a_looks[:, None]  # of b's looks, how many fall in the first m
+    rows = np.arange(a.shape[0])[:, None]
+    from_b = np.where(rest > 0, b[rows, np.clip(rest - 1, 0, c - 1)], 0)
+    out: IntArray = a + from_b
+    return out
 
 
 def newer_evidence_wins(
@@ -1204,20 +1304,31 @@ CHORD_CAP = (1 << 16) - 1
 64 whole chords)."""
 
 
-def advance_chord(weights: NDArray[np.integer], obs: VoxelObservations, at: IntArray) -> IntArray:
+def advance_chord(
+    weights: NDArray[np.integer],
+    hits: NDArray[np.integer],
+    frees: NDArray[np.integer],
+    obs: VoxelObservations,
+    at: IntArray,
+) -> IntArray:
     """Apply a run of scans' chord shares to voxels' summed shares, as one by one.
 
-    A voxel's summed shares are those of its free looks since its last return (all of
-    them in a static world, ``clear_scans`` 0), saturated at :data:`CHORD_CAP`: a
-    return restarts the sum (as it restarts the free count), a free look adds its
-    share, weak or strong. Saturated sums of non-negative whole numbers compose, so a
-    run's sums (``obs.chord``, and ``obs.tail_chord`` after its last return) give what
-    its scans one by one would.
+    A voxel's summed shares are those of the free looks its free count counts
+    (:func:`advance`), saturated at :data:`CHORD_CAP`: in a static world (``clear_scans``
+    0) its first ``lattice.evidence_cap`` looks; with newer evidence winning, up to K
+    looks since its last return (a return restarts the sum as it restarts the free
+    count), every look counting while the voxel holds no return and only strong ones
+    (those counting towards forgetting) while it holds one. A look the count no longer
+    counts adds nothing, so a revisit that changes no count changes no sum. The run's
+    prefix sums (``obs.chord``, ``obs.strong_chord``, ``obs.tail_chord``) give what its
+    scans one by one would.
 
     Parameters
     ----------
     weights : ndarray of int, shape (p,)
         The current sums of ``p`` voxel copies.
+    hits, frees : ndarray of int, shape (p,)
+        The copies' counts before the run (those :func:`advance` is given).
     obs : VoxelObservations
         The run's observations, with chord shares.
     at : ndarray of int, shape (p,)
@@ -1227,12 +1338,17 @@ def advance_chord(weights: NDArray[np.integer], obs: VoxelObservations, at: IntA
     -------
     ndarray of int64, shape (p,)
     """
-    if obs.chord is None or obs.tail_chord is None:
+    if obs.chord is None or obs.strong_chord is None or obs.tail_chord is None:
         raise ValueError("the observations hold no chord shares")
+    c = obs.chord.shape[1]
     w0 = weights.astype(np.int64)
-    w = w0 + obs.chord[at]
-    if obs.clear_scans:
-        w = np.where(obs.hits[at] > 0, obs.tail_chord[at], w)
+    left = c - frees.astype(np.int64)  # looks the free count still counts
+    every = _first_looks(obs.chord, at, left)
+    if not obs.clear_scans:
+        w = w0 + every
+    else:
+        strong = _first_looks(obs.strong_chord, at, left)
+        w = np.select([obs.hits[at] > 0, hits > 0], [obs.tail_chord[at], w0 + strong], w0 + every)
     out: IntArray = np.minimum(w, CHORD_CAP)
     return out
 

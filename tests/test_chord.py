@@ -23,6 +23,8 @@ from octolgp.engines.base import evidence_arrays
 from octolgp.geometry import ray_kernel
 from octolgp.geometry.keys import pack_keys
 from octolgp.observations import (
+    CHORD_CAP,
+    VoxelObservations,
     _scan_codes,
     _walk_free,
     advance,
@@ -95,42 +97,98 @@ def test_shares_are_the_chord_through_each_box(dim: int) -> None:
     assert err.max() <= 1 / 2048 + 1 / 400
 
 
+def _chord_rule(
+    state: dict[int, tuple[int, int, int]], obs: VoxelObservations, config: MapConfig
+) -> None:
+    """One scan's observations applied to ``state`` (packed key → hits, frees, summed
+    shares) as the rule states it: a free look adds its share while the free count
+    counts it (below ``clear_scans``, or ``evidence_cap`` in a static world; with a
+    return held, only looks counting towards forgetting), and a return restarts the sum."""
+    k, cap = config.clear_scans, config.lattice.evidence_cap
+    keys = pack_keys(obs.keys).tolist()
+    h0, f0, _ = (np.array([state.get(x, (0, 0, 0))[i] for x in keys], np.int64) for i in range(3))
+    counts = advance(h0, f0, obs, np.arange(len(keys)), cap)
+    assert obs.chord is not None
+    share = obs.chord[:, 0]
+    for j, key in enumerate(keys):  # one iteration per voxel: the rule as stated
+        h, f, w = state.get(key, (0, 0, 0))
+        if obs.hits[j] and k:
+            w = 0
+        elif obs.frees[j]:
+            strong = obs.frees[j] > obs.weak_frees[j]
+            if f < (k or cap) and (not k or h == 0 or strong):
+                w = min(w + int(share[j]), CHORD_CAP)
+        state[key] = (int(counts.hits[j]), int(counts.frees[j]), w)
+
+
 @pytest.mark.parametrize("clear", [0, 2, 5])
+@pytest.mark.parametrize("cap", [1, 3])
 @pytest.mark.parametrize("dim", [2, 3])
-def test_summed_shares_at_once_are_the_scans_one_by_one(dim: int, clear: int) -> None:
-    rng = np.random.default_rng(10 * clear + dim)
+def test_summed_shares_at_once_are_the_scans_one_by_one(dim: int, cap: int, clear: int) -> None:
+    rng = np.random.default_rng(10 * clear + dim + 100 * cap)
     scans = _flicker_scans(rng, dim, 14)
     config = MapConfig(
         dim=dim,
         resolution=RES,
         online=OnlineConfig(clear_scans=clear),
-        lattice=LatticeConfig(free_evidence="chord"),
+        lattice=LatticeConfig(free_evidence="chord", evidence_cap=cap),
     )
-    state: dict[int, int] = {}
+    state: dict[int, tuple[int, int, int]] = {}
     for scan in scans:  # the rule, scan after scan
-        obs = observe([scan], config)
-        keys = pack_keys(obs.keys).tolist()
-        before = np.array([state.get(k, 0) for k in keys], dtype=np.int64)
-        after = advance_chord(before, obs, np.arange(len(keys)))
-        state.update(zip(keys, after.tolist(), strict=True))
+        _chord_rule(state, observe([scan], config), config)
+    want = {key: w for key, (_, _, w) in state.items()}
     whole = observe(scans, config)
     merged = merge_observations([observe(scans[:5], config), observe(scans[5:], config)], dim)
     numpy_form = observe(scans, config, compiled=False)
     for obs in (whole, merged, numpy_form):
         assert obs.chord is not None
+        assert obs.strong_chord is not None
         assert obs.tail_chord is not None
+        assert obs.chord.shape == (obs.n_voxels, clear or cap)
         np.testing.assert_array_equal(obs.chord, whole.chord)
+        np.testing.assert_array_equal(obs.strong_chord, whole.strong_chord)
         np.testing.assert_array_equal(obs.tail_chord, whole.tail_chord)
         zero = np.zeros(obs.n_voxels, np.int64)
-        got = advance_chord(zero, obs, np.arange(obs.n_voxels))
-        assert dict(zip(pack_keys(obs.keys).tolist(), got.tolist(), strict=True)) == state
-        counts = advance(zero, zero, obs, np.arange(obs.n_voxels), 1)
+        got = advance_chord(zero, zero, zero, obs, np.arange(obs.n_voxels))
+        assert dict(zip(pack_keys(obs.keys).tolist(), got.tolist(), strict=True)) == want
+        counts = advance(zero, zero, obs, np.arange(obs.n_voxels), cap)
         assert np.all((got == 0) | (counts.hits > 0) | (counts.frees > 0))  # a record keeps it
-    assert whole.tail_chord is not None
-    assert whole.chord is not None
-    if clear:  # returns restart the sums
-        assert np.any(whole.tail_chord < whole.chord)
-    assert observe(scans, dataclasses.replace(config, lattice=LatticeConfig())).chord is None
+    # two runs one after the other: the second applied to the first's state
+    first = observe(scans[:6], config)
+    zero = np.zeros(first.n_voxels, np.int64)
+    counts = advance(zero, zero, first, np.arange(first.n_voxels), cap)
+    w = advance_chord(zero, zero, zero, first, np.arange(first.n_voxels))
+    second = observe(scans[6:], config)
+    at = np.searchsorted(pack_keys(second.keys), pack_keys(first.keys))
+    inside = at < second.n_voxels
+    inside[inside] = pack_keys(second.keys)[at[inside]] == pack_keys(first.keys)[inside]
+    got = w.copy()
+    got[inside] = advance_chord(
+        w[inside], counts.hits[inside], counts.frees[inside], second, at[inside]
+    )
+    first_keys = pack_keys(first.keys).tolist()
+    assert dict(zip(first_keys, got.tolist(), strict=True)) == {x: want[x] for x in first_keys}
+    looks = LatticeConfig(free_evidence="looks")
+    assert observe(scans, dataclasses.replace(config, lattice=looks)).chord is None
+
+
+def test_a_static_revisit_changes_no_sum() -> None:
+    """Once a voxel's free count stops counting, the same scan again changes nothing: a
+    map seeing the same scan over and over settles (no leaf refits) as with looks."""
+    from octolgp import Hyperparameters
+    from octolgp.sim.lidar3d import simulate_lidar_room
+
+    room = simulate_lidar_room(2, seed=3, n_azimuth=128, n_elevation=8, max_range=8.0)
+    scan = room.scans()[0].downsample(0.2)
+    hp = Hyperparameters(
+        length_scale=0.8, signal_variance=2.0, noise_variance=0.01, alpha=5.0, beta=0.0
+    )
+    config = MapConfig(dim=3, resolution=0.2, hyperparameters=hp).resolve()
+    assert config.free_evidence == "chord"  # the 3D default
+    m = OnlineMap(config)
+    refits = [m.insert_scan(scan).refit_leaves for _ in range(config.clear_scans + 2)]
+    assert refits[0] > 0
+    assert refits[-2:] == [0, 0]
 
 
 def evidence_bytes_of(evidence: object) -> list[bytes]:
@@ -211,6 +269,43 @@ def test_learning_weighs_free_voxels_by_their_looks() -> None:
     np.testing.assert_allclose(looks_seen, np.round(looks_seen), atol=1e-9)
     assert np.all((looks_seen >= 1) & (looks_seen <= max(1, config.clear_scans)))
     assert np.any(looks_seen > 1)
+
+
+def test_calibration_weighs_free_voxels_as_the_fit() -> None:
+    """The voxel observations α, β are calibrated on (``weighting="fit"``) weigh a free
+    voxel ``chord_weight`` times its summed shares, those a leaf keeps after the same
+    scans; in a region, each as in the whole result."""
+    from octolgp.geometry.keys import KeyRegion, coord_to_key
+    from octolgp.gp.learning import voxel_observations
+    from octolgp.mapping.grid import LeafGrid
+
+    scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1)]]
+    config = _chord2d(scan_precision=None).resolve()  # the scans as given
+    points, y, weights = voxel_observations(scans, config, weighting="fit")
+    m = OnlineMap(config)
+    m.insert_batch(scans)
+    grid = LeafGrid.from_config(m.config)
+    box = grid.side + 2 * grid.halo_voxels
+    keys = coord_to_key(points[y < 0], config.resolution, config.tree_depth)
+    leaves = dict(m.leaves())
+    leaf_of = keys // grid.side
+    local = keys - leaf_of * grid.side + grid.halo_voxels
+    flat = local @ (box ** np.arange(2))
+    packed = pack_keys(leaf_of)
+    kept = np.array(
+        [leaves[k].evidence.chord[f] for k, f in zip(packed.tolist(), flat.tolist(), strict=True)]  # type: ignore[attr-defined]
+    )
+    assert np.all(kept > 0)
+    want = config.lattice.chord_weight * kept / ray_kernel.CHORD_UNITS
+    np.testing.assert_allclose(weights[y < 0], want, rtol=1e-12)
+    region = KeyRegion.around(np.array([[0.5, 0.0]]), np.array([1.5]), RES, config.tree_depth)
+    p2, y2, w2 = voxel_observations(scans, config, region, weighting="fit")
+    whole = {tuple(p): (t, w) for p, t, w in zip(points.tolist(), y, weights, strict=True)}
+    assert 0 < p2.shape[0] < points.shape[0]
+    for p, t, w in zip(p2.tolist(), y2, w2, strict=True):
+        assert whole[tuple(p)] == (t, w)
+    with pytest.raises(ValueError, match="weighting"):
+        voxel_observations(scans, config, weighting="chord")
 
 
 def test_one_by_one_equals_all_at_once_in_3d() -> None:

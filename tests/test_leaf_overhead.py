@@ -18,6 +18,7 @@ import pytest
 import octolgp.engines.lattice as lattice_module
 import octolgp.mapping.online as online_module
 from octolgp import Hyperparameters, MapConfig, OnlineMap, Scan
+from octolgp.config import LatticeConfig
 from octolgp.engines.base import Evidence, LeafFit, Lookup, evidence_arrays, with_values
 from octolgp.engines.lattice import (
     LatticeEvidence,
@@ -28,12 +29,19 @@ from octolgp.engines.lattice import (
     map_tables,
     return_points,
 )
+from octolgp.geometry import ray_kernel
 from octolgp.geometry.keys import pack_keys, unpack_keys
 from octolgp.gp.lattice import Returns, lattice_posterior
 from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.grid import LeafGrid
 from octolgp.mapping.store import Leaf, LeafStore
-from octolgp.observations import VoxelObservations, advance, effective_counts, observe
+from octolgp.observations import (
+    VoxelObservations,
+    advance,
+    advance_chord,
+    effective_counts,
+    observe,
+)
 from octolgp.sim.lidar3d import simulate_lidar_room
 
 HP = Hyperparameters(
@@ -65,6 +73,7 @@ def reference_gather(
     inverse = np.searchsorted(touched, leaf_key)
     n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
     old = np.zeros((touched.size, 2, n_halo), dtype=np.uint8)
+    old_w = np.zeros((touched.size, n_halo), dtype=np.uint16)  # summed chord shares
     current: list[Leaf | None] = []
     for j, key in enumerate(touched.tolist()):
         leaf = lookup(key)
@@ -72,6 +81,9 @@ def reference_gather(
         counts = None if leaf is None else lattice_evidence(leaf).counts
         if counts is not None and counts.shape[1] == n_halo:
             old[j] = counts
+        chord = None if leaf is None else lattice_evidence(leaf).chord
+        if chord is not None and chord.size == n_halo:
+            old_w[j] = chord
     cap = config.lattice.evidence_cap
     at_h = inverse * (2 * n_halo) + flat
     before_h = old.reshape(-1)[at_h].astype(np.int64)
@@ -86,6 +98,15 @@ def reference_gather(
     moves = state.replace | state.drop
     effective = d_h | d_f | moves
     stored = effective | (state.hits != before_h) | (state.frees != before_f)
+    new_w = old_w.copy()
+    if obs.chord is not None:  # the rule on every copy's summed shares
+        at_w = inverse * n_halo + flat
+        w0 = old_w.reshape(-1)[at_w].astype(np.int64)
+        w1 = advance_chord(w0, before_h, before_f, obs, voxel)
+        new_w.reshape(-1)[at_w] = w1
+        w_input = np.where(ef1 > 0, w1, 0) != np.where(ef0 > 0, w0, 0)
+        effective = effective | w_input
+        stored = stored | w_input | (w1 != w0)
     refit = np.zeros(touched.size, dtype=bool)
     refit[inverse[effective]] = True
     mv = np.flatnonzero(moves)
@@ -108,7 +129,9 @@ def reference_gather(
             leaf = Leaf(index[j].copy(), LatticeEvidence.empty(grid.dim))
         ev = lattice_evidence(leaf)
         hit_keys, hits = returns.get(j, (ev.hit_keys, ev.hits))
-        leaf = leaf.evolve(evidence=LatticeEvidence(new[j].copy(), hit_keys, hits))
+        chord = new_w[j].copy() if obs.chord is not None else ev.chord
+        evidence = LatticeEvidence(new[j].copy(), hit_keys, hits, ev.swept, chord)
+        leaf = leaf.evolve(evidence=evidence)
         (changed if refit[j] else kept).append((int(touched[j]), leaf))
     return Evidence(changed, touched.tolist(), int(d_h.sum() + d_f.sum()), kept)
 
@@ -151,9 +174,13 @@ def reference_fit(
     tile_grid = dataclasses.replace(grid, leaf_depth=grid.leaf_depth + int(np.log2(per_axis)))
     tiles = [o[::-1] for o in itertools.product(range(per_axis), repeat=d)]  # x fastest
     hit_rows, free_rows, tile_points = [], [], []
+    chord_mode = config.free_evidence == "chord"
+    weight = lc.chord_weight / ray_kernel.CHORD_UNITS if chord_mode else lc.free_weight
     for leaf in leaves:
         ev = lattice_evidence(leaf)
         h, f = effective_counts(ev.counts[0], ev.counts[1], lc.evidence_cap, config.clear_scans)
+        if chord_mode:  # a free voxel weighs its summed chord shares
+            f = np.where(f > 0, ev.chord, 0)
         h, f = h.reshape((box,) * d), f.reshape((box,) * d)  # [z, y, x]
         coords = unpack_keys(ev.hit_keys, d) - (leaf.index * side - halo)
         flat = coords @ (box ** np.arange(d))
@@ -175,7 +202,7 @@ def reference_fit(
         tables,
         np.array(hit_rows),
         np.array(free_rows),
-        lc.free_weight,
+        weight,
         Returns.from_list(tile_points, d),
     )
     mean = np.empty((len(leaves),) + (side,) * d)
@@ -285,8 +312,10 @@ def _config(
     prune: bool | None = None,
     defer: bool = True,
     leaf_depth: int | None = SMALL_LEAVES,
+    free_evidence: str | None = None,
 ) -> MapConfig:
-    config = MapConfig(dim=3, resolution=0.2, memory_budget_mb=budget)
+    lattice = LatticeConfig(free_evidence=free_evidence)
+    config = MapConfig(dim=3, resolution=0.2, memory_budget_mb=budget, lattice=lattice)
     online = dataclasses.replace(
         config.online,
         n_jobs=1,
@@ -333,13 +362,15 @@ def _evidence_state(evidence: Evidence) -> tuple[object, ...]:
 
 
 @pytest.mark.parametrize(
-    ("clear_scans", "budget", "prune", "defer", "leaf_depth"),
+    ("clear_scans", "budget", "prune", "defer", "leaf_depth", "free_evidence"),
     [
-        (None, None, None, False, SMALL_LEAVES),
-        (None, None, None, True, SMALL_LEAVES),
-        (None, None, None, True, None),  # the default leaves
-        (0, None, True, False, SMALL_LEAVES),
-        (2, 0.05, True, True, SMALL_LEAVES),  # a budget's spill file: fitted at every insert
+        (None, None, None, False, SMALL_LEAVES, None),
+        (None, None, None, True, SMALL_LEAVES, None),
+        (None, None, None, True, None, None),  # the default leaves
+        (None, None, None, True, None, "looks"),
+        (0, None, True, False, SMALL_LEAVES, None),
+        (0, None, None, True, SMALL_LEAVES, "looks"),
+        (2, 0.05, True, True, SMALL_LEAVES, None),  # a budget's spill file: fitted at every insert
     ],
 )
 def test_maps_equal_those_of_the_straightforward_path(
@@ -349,9 +380,10 @@ def test_maps_equal_those_of_the_straightforward_path(
     prune: bool | None,
     defer: bool,
     leaf_depth: int | None,
+    free_evidence: str | None,
 ) -> None:
     scans = _scans(6)
-    config = _config(clear_scans, budget, prune, defer, leaf_depth)
+    config = _config(clear_scans, budget, prune, defer, leaf_depth, free_evidence)
     fast = OnlineMap(config)
     with monkeypatch.context() as m:
         m.setattr(lattice_module, "gather_observations", reference_gather)

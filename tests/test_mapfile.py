@@ -498,7 +498,7 @@ def test_a_3d_map_file_of_leaves_of_four_reopens_as_it_was(tmp_path: Path) -> No
         dim=3,
         resolution=0.2,
         hyperparameters=HP,
-        lattice=LatticeConfig(fill_voxels=-1, min_inducing_per_axis=2),
+        lattice=LatticeConfig(fill_voxels=-1, min_inducing_per_axis=2, free_evidence="looks"),
     )
     old = dataclasses.replace(config, online=dataclasses.replace(config.online, leaf_depth=14))
     path = tmp_path / "old3d.octolgp"

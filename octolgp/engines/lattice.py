@@ -10,7 +10,7 @@ sees occupied. The leaf's GP sees the returns at their positions and the free vo
 their centres, a free look weighing ``LatticeConfig.free_weight`` of a return
 (:func:`octolgp.observations.effective_counts`), or, with ``LatticeConfig.free_evidence =
 "chord"``, a free voxel weighing ``chord_weight`` times its summed shares of the free
-segments' chords through the leaf holding it, which the leaf keeps per halo voxel beside
+segments' chords through the 16-voxel box holding it, which the leaf keeps per halo voxel beside
 the counts (:func:`octolgp.observations.advance_chord`); it is a sparse GP on an inducing lattice
 whose kernel tables every leaf shares (:mod:`octolgp.gp.lattice`), so many leaves fit in a
 few matrix products. A leaf's counts are a function of the scans in time order, not of
@@ -468,10 +468,12 @@ def gather_observations(
         at_w = inverse * n_halo + flat
         flat_chord = chord_rows.reshape(-1)
         w_pairs = flat_chord[at_w].astype(np.int64)
-        w_unit, w_at, w0 = None, voxel, w_pairs
+        w_unit, w_at, w0, h_w, f_w = None, voxel, w_pairs, h0, f0
         if unit is not None:  # per voxel where the counts' copies agree and the sums' too
             w_unit, w_at, w0, _ = _voxel_units(w_pairs, w_pairs, voxel, obs.n_voxels)
-        w1 = advance_chord(w0, obs, w_at)
+            if w_unit is None:
+                h_w, f_w = h0[unit], f0[unit]
+        w1 = advance_chord(w0, h_w, f_w, obs, w_at)
         if w_unit is None:  # per copy: the counts' units to copies
             free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
         else:
