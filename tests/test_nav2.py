@@ -36,7 +36,6 @@ INTEL20 = DATA / "intel_first20.log"
 HP2 = Hyperparameters(
     length_scale=1.2, signal_variance=3.8, noise_variance=0.006, alpha=4.5, beta=1.0
 )
-HP3 = Hyperparameters(length_scale=0.6, signal_variance=1.0, noise_variance=0.05, alpha=3.0)
 RES = 0.1
 
 
@@ -51,10 +50,11 @@ def map2d(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def map3d(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 3D map file of two scans of the KITTI fixture at 0.5 m (z up)."""
+    """A 3D map file of the KITTI fixture's five scans at 0.5 m (z up), the default config
+    (hyperparameters learnt, α, β calibrated on the map's own free weights)."""
     path = tmp_path_factory.mktemp("nav2") / "street.octolgp"
-    scans = list(read_kitti(DATA / "kitti" / "sequences" / "00", world="velodyne"))[:2]
-    with OnlineMap(MapConfig(dim=3, resolution=0.5, hyperparameters=HP3), path=path) as m:
+    scans = list(read_kitti(DATA / "kitti" / "sequences" / "00", world="velodyne"))
+    with OnlineMap(MapConfig(dim=3, resolution=0.5), path=path) as m:
         m.insert_scans(scans)
     return path
 
