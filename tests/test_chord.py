@@ -63,6 +63,13 @@ def test_compiled_and_numpy_shares_agree(dim: int) -> None:
     plain = _walk_free(o, e, scan, RES, 16, near, compiled=True)
     np.testing.assert_array_equal(plain[0], got[0])  # shares change no voxel
     assert plain[2].size == 0
+    for box in (1, 4):  # any power of two: boxes of one voxel get whole chords
+        small = _walk_free(o, e, scan, RES, 16, near, compiled=True, box=box)
+        numpy_form = _walk_free(o, e, scan, RES, 16, near, compiled=False, box=box)
+        for a, b in zip(small, numpy_form, strict=True):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="power of two"):
+        _walk_free(o, e, scan, RES, 16, near, compiled=True, box=12)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
