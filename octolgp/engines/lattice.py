@@ -352,6 +352,50 @@ def _stored_chord(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint16]:
     return out
 
 
+def _advance_chord_pairs(
+    voxel: IntArray,
+    at_w: IntArray,
+    inverse: IntArray,
+    flat_chord: NDArray[np.uint16],
+    obs: VoxelObservations,
+    unit: IntArray | None,
+    ef0: NDArray[np.integer],
+    ef1: NDArray[np.integer],
+    refit: NDArray[np.bool_],
+    new_counts: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Advance the pairs' summed chord shares: once per voxel where copies agree.
+
+    The numpy form of :func:`octolgp.engines.gather_kernel.chord_units`, which also
+    serves where copies differ. ``unit`` is the counts' (``None``: each copy a unit of
+    its own), ``ef0`` / ``ef1`` the units' effective free counts before and after the
+    step; writes the new sums into ``flat_chord`` and sets ``refit`` / ``new_counts``
+    for the leaves whose GP input / stored sum moved.
+
+    Returns
+    -------
+    ndarray of bool, shape (p,)
+        The pairs whose GP input moved.
+    """
+    w_pairs = flat_chord[at_w].astype(np.int64)
+    w_unit, w_at, w0 = None, voxel, w_pairs
+    if unit is not None:  # per voxel where the counts' copies agree and the sums' too
+        w_unit, w_at, w0, _ = _voxel_units(w_pairs, w_pairs, voxel, obs.n_voxels)
+    w1 = advance_chord(w0, obs, w_at)
+    if w_unit is None:  # per copy: the counts' units to copies
+        free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
+    else:
+        free0, free1 = ef0, ef1
+    w_input: NDArray[np.bool_] = np.where(free1 > 0, w1, 0) != np.where(free0 > 0, w0, 0)
+    w_stored = w_input | (w1 != w0)
+    if w_unit is not None:
+        w1, w_input, w_stored = w1[w_unit], w_input[w_unit], w_stored[w_unit]
+    flat_chord[at_w] = w1
+    refit[inverse[w_input]] = True
+    new_counts[inverse[w_stored]] = True
+    return w_input
+
+
 def gather_observations(
     obs: VoxelObservations,
     grid: LeafGrid,
@@ -467,22 +511,15 @@ def gather_observations(
         chord_rows = _stored_chord(current, n_halo)
         at_w = inverse * n_halo + flat
         flat_chord = chord_rows.reshape(-1)
-        w_pairs = flat_chord[at_w].astype(np.int64)
-        w_unit, w_at, w0 = None, voxel, w_pairs
-        if unit is not None:  # per voxel where the counts' copies agree and the sums' too
-            w_unit, w_at, w0, _ = _voxel_units(w_pairs, w_pairs, voxel, obs.n_voxels)
-        w1 = advance_chord(w0, obs, w_at)
-        if w_unit is None:  # per copy: the counts' units to copies
-            free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
-        else:
-            free0, free1 = ef0, ef1
-        w_input = np.where(free1 > 0, w1, 0) != np.where(free0 > 0, w0, 0)
-        w_stored = w_input | (w1 != w0)
-        if w_unit is not None:
-            w1, w_input, w_stored = w1[w_unit], w_input[w_unit], w_stored[w_unit]
-        flat_chord[at_w] = w1
-        refit[inverse[w_input]] = True
-        new_counts[inverse[w_stored]] = True
+        w_input = None
+        if unit is not None and gather_kernel.AVAILABLE:  # one pass, where the sums agree
+            w_input = gather_kernel.chord_units(
+                voxel, at_w, inverse, flat_chord, obs, ef0, ef1, refit, new_counts
+            )
+        if w_input is None:
+            w_input = _advance_chord_pairs(
+                voxel, at_w, inverse, flat_chord, obs, unit, ef0, ef1, refit, new_counts
+            )
         if fresh:
             stale_leaf = np.concatenate([stale_leaf, inverse[w_input]])
             stale_flat = np.concatenate([stale_flat, flat[w_input]])
