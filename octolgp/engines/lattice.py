@@ -317,39 +317,57 @@ def _voxel_units(
     return voxel, np.arange(n), h, f
 
 
-def _stored_counts(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint8]:
-    """The stored counts of leaves, zero for a new leaf or one not yet sized.
+def _stored_rows(leaves: list[Leaf | None], n_halo: int, chord: bool) -> NDArray[np.uint8]:
+    """The stored counts of leaves, and with ``chord`` their summed chord shares, as rows.
+
+    Zero for a new leaf, counts not yet sized, or sums not kept. A row holds the
+    counts' bytes (``2 * n_halo``: :attr:`LatticeEvidence.counts` flat) and, with
+    ``chord``, then the sums' (``n_halo`` uint16, native order: the row's second half
+    viewed as uint16 is :attr:`LatticeEvidence.chord`). A leaf whose counts and sums are
+    the two halves of one buffer (:func:`_own_rows` gives them so) is read in one copy.
 
     Returns
     -------
-    ndarray of uint8, shape (len(leaves), 2, n_halo)
+    ndarray of uint8, shape (len(leaves), 2 * n_halo) or (len(leaves), 4 * n_halo)
     """
-    out = np.zeros((len(leaves), 2, n_halo), dtype=np.uint8)
+    width = (4 if chord else 2) * n_halo
+    out = np.empty((len(leaves), width), dtype=np.uint8)  # each row written once
+    evidence = evidence_of([leaf for leaf in leaves if leaf is not None])
+    if len(evidence) < len(leaves):  # new leaves: zero
+        out[[j for j, leaf in enumerate(leaves) if leaf is None]] = 0
     rows = [j for j, leaf in enumerate(leaves) if leaf is not None]
-    counts = [ev.counts for ev in evidence_of([leaf for leaf in leaves if leaf is not None])]
-    sized = [c.shape[1] == n_halo for c in counts]
-    if not all(sized):
-        rows = list(itertools.compress(rows, sized))
-        counts = list(itertools.compress(counts, sized))
-    for j, c in zip(rows, counts, strict=True):  # straight into place: no stacked copy
-        out[j] = c
+    if not chord:
+        counts_of = out.reshape(len(leaves), 2, n_halo)
+        for j, ev in zip(rows, evidence, strict=True):  # straight into place: no stacked copy
+            if ev.counts.shape[1] == n_halo:
+                counts_of[j] = ev.counts
+            else:
+                counts_of[j] = 0
+        return out
+    sums_of = out.view(np.uint16)[:, n_halo:]
+    for j, ev in zip(rows, evidence, strict=True):
+        c, w = ev.counts, ev.chord
+        whole = w.base
+        if whole is not None and c.base is whole and whole.nbytes == width:  # one buffer
+            out[j] = whole
+            continue
+        out[j, : 2 * n_halo] = c.reshape(-1) if c.shape[1] == n_halo else 0
+        sums_of[j] = w if w.size == n_halo else 0
     return out
 
 
-def _stored_chord(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint16]:
-    """The summed chord shares of leaves, zero for a new leaf or one keeping none.
+def _own_rows(
+    row: NDArray[np.uint8], n_halo: int
+) -> tuple[NDArray[np.uint8], NDArray[np.uint16] | None]:
+    """A leaf's own counts, and sums where ``row`` holds them, from a row of :func:`_stored_rows`.
 
-    Returns
-    -------
-    ndarray of uint16, shape (len(leaves), n_halo)
+    One copy: with sums, the counts and sums are views of the two halves of it.
     """
-    out = np.zeros((len(leaves), n_halo), dtype=np.uint16)
-    for j, leaf in enumerate(leaves):  # one iteration per touched leaf
-        if leaf is not None:
-            chord = lattice_evidence(leaf).chord
-            if chord.size == n_halo:
-                out[j] = chord
-    return out
+    own = row.copy()
+    counts = own[: 2 * n_halo].reshape(2, n_halo)
+    if own.size == 2 * n_halo:
+        return counts, None
+    return counts, own[2 * n_halo :].view(np.uint16)
 
 
 def _advance_chord_pairs(
@@ -450,10 +468,11 @@ def gather_observations(
     keys = touched.tolist()
     n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
     current = [lookup(key) for key in keys]  # one call per touched leaf
-    counts = _stored_counts(current, n_halo)
+    with_chord = obs.chord is not None  # the summed chord shares beside the counts
+    stacked = _stored_rows(current, n_halo, with_chord)
     cap = config.lattice.evidence_cap
-    at_h = inverse * (2 * n_halo) + flat  # each pair's return count in counts.ravel()
-    flat_counts = counts.reshape(-1)
+    at_h = inverse * stacked.shape[1] + flat  # each pair's return count in stacked.ravel()
+    flat_counts = stacked.reshape(-1)
     # the rule and what changes, per unit (a voxel, or a copy should copies differ)
     once = None
     unit: IntArray | None
@@ -506,11 +525,9 @@ def gather_observations(
     if fresh:  # the pairs whose GP input moved
         moved_in = effective if unit is None else effective[unit]
         stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
-    chord_rows = None
-    if obs.chord is not None:  # the summed chord shares: once per voxel where copies agree
-        chord_rows = _stored_chord(current, n_halo)
-        at_w = inverse * n_halo + flat
-        flat_chord = chord_rows.reshape(-1)
+    if with_chord:  # the summed chord shares: once per voxel where copies agree
+        at_w = inverse * (stacked.shape[1] // 2) + n_halo + flat  # in the uint16 view
+        flat_chord = flat_counts.view(np.uint16)
         w_input = None
         if unit is not None and gather_kernel.AVAILABLE:  # one pass, where the sums agree
             w_input = gather_kernel.chord_units(
@@ -551,22 +568,21 @@ def gather_observations(
     touched_index = unpack_keys(touched, grid.dim)
     sel = np.flatnonzero(new_counts)
     for j, r in zip(sel.tolist(), refit[sel].tolist(), strict=True):
-        row = counts[j]  # a view: the leaf's own array is its copy
-        leaf = current[j]  # one iteration per leaf with new counts: arrays of its own
+        counts_j, chord_j = _own_rows(stacked[j], n_halo)  # arrays of its own
+        leaf = current[j]  # one iteration per leaf with new counts
         moved = returns.get(j)
-        chord_j = _NONE_CHORD if chord_rows is None else chord_rows[j].copy()
         if leaf is None:
             hit_keys, hits = moved or (np.zeros(0, np.int64), np.zeros((0, grid.dim)))
             swept_j = new_swept.get(j, _NONE_SWEPT)
-            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
+            chord_j = _NONE_CHORD if chord_j is None else chord_j
+            evidence = LatticeEvidence(counts_j, hit_keys, hits, swept_j, chord_j)
             leaf = Leaf(touched_index[j].copy(), evidence)
         else:
-            ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_counts
+            ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_rows
             hit_keys, hits = (ev.hit_keys, ev.hits) if moved is None else moved
             swept_j = new_swept.get(j, ev.swept)
-            if chord_rows is None:
-                chord_j = ev.chord
-            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
+            chord_j = ev.chord if chord_j is None else chord_j
+            evidence = LatticeEvidence(counts_j, hit_keys, hits, swept_j, chord_j)
             leaf = leaf.with_evidence(evidence)
         if r:
             changed.append((keys[j], leaf))
