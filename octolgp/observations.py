@@ -829,7 +829,7 @@ def _observe_one(
     state = ray_kernel.state_map(cells)
     start = (key0 - low) @ stride
     box = chord_box(config)
-    weights = np.zeros(state.size if box else 0, dtype=np.int32)
+    weights = np.empty(state.size if box else 0, dtype=np.int32)  # zeroed where marked
     chord = (key0, box, weights) if box else None
     ray_kernel.walk_segments(start, move, crossings, gap, np.abs(du), enter, state, chord)
     hit_cell = (hit_keys - low) @ stride
@@ -847,10 +847,10 @@ def _observe_one(
         points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
         first = _first_of_each(hit_cell)
         first_hit[np.searchsorted(cell, hit_cell[first])] = points[first]
-    obs = _without_forgetting(keys, hits, frees, first_hit)
+    shares = None  # a voxel with a return in it gets none (a cell only hit: any weight)
     if box:
-        shares = np.where(free, weights[cell], 0).astype(np.int64)
-        obs = dataclasses.replace(obs, chord=shares, tail_chord=shares.copy())
+        shares = np.multiply(weights[cell], free, dtype=np.int64)
+    obs = _without_forgetting(keys, hits, frees, first_hit, shares)
     if near is None:  # without forgetting: no look is weak
         return obs
     weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
@@ -900,12 +900,22 @@ def _combine(
 
 
 def _without_forgetting(
-    keys: IntArray, hits: IntArray, frees: IntArray, first_hit: np.ndarray
+    keys: IntArray,
+    hits: IntArray,
+    frees: IntArray,
+    first_hit: np.ndarray,
+    chord: IntArray | None = None,
 ) -> VoxelObservations:
-    """Observations without a newer-evidence summary (``clear_scans`` 0)."""
+    """Observations without a newer-evidence summary (``clear_scans`` 0).
+
+    ``chord``: the voxels' summed chord shares, if kept (all of them after the last
+    return, as the free looks are).
+    """
     zeros = np.zeros(hits.size, dtype=np.int64)
     none = np.full(first_hit.shape, np.nan)
-    return VoxelObservations(keys, hits, frees, zeros, first_hit, 0, frees, frees, zeros, none)
+    return VoxelObservations(
+        keys, hits, frees, zeros, first_hit, 0, frees, frees, zeros, none, chord, chord
+    )
 
 
 def _summarise(
