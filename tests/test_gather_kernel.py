@@ -227,7 +227,9 @@ def test_chord_units_equal_the_numpy_form(differ: bool, clear_scans: int) -> Non
         sums = flat_chord.copy()
         marks = refit.copy(), new_counts.copy()
         if compiled:
-            moved = gather_kernel.chord_units(voxel, at_w, inverse, sums, obs, ef0, ef1, *marks)
+            moved = gather_kernel.chord_units(
+                voxel, inverse, flat, n_halo, 0, sums, obs, ef0, ef1, *marks
+            )
             if differ:  # the numpy form serves, nothing written
                 assert moved is None
                 np.testing.assert_array_equal(sums, flat_chord)

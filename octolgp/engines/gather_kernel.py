@@ -217,8 +217,10 @@ def _unit_counts(
 
 def _chord_units(
     voxel: IntArray,
-    at_w: IntArray,
     inverse: IntArray,
+    flat: IntArray,
+    row: int,
+    offset: int,
     flat_chord: NDArray[np.uint16],
     chord: IntArray,
     tail_chord: IntArray,
@@ -238,7 +240,7 @@ def _chord_units(
     """
     for i in range(voxel.size):  # each voxel's sum, read once from its copies
         v = voxel[i]
-        w = flat_chord[at_w[i]]
+        w = flat_chord[inverse[i] * row + offset + flat[i]]
         if seen[v]:
             if w0[v] != w:
                 return False
@@ -263,7 +265,7 @@ def _chord_units(
             flag[v] = 2
     for i in range(voxel.size):  # each pair's new sum; the leaves that change
         v = voxel[i]
-        flat_chord[at_w[i]] = w1[v]
+        flat_chord[inverse[i] * row + offset + flat[i]] = w1[v]
         if flag[v] & 1:
             refit[inverse[i]] = True
             moved[i] = True
@@ -490,8 +492,10 @@ def unit_counts(
 
 def chord_units(
     voxel: IntArray,
-    at_w: IntArray,
     inverse: IntArray,
+    flat: IntArray,
+    row: int,
+    offset: int,
     flat_chord: NDArray[np.uint16],
     obs: VoxelObservations,
     free0: NDArray[np.integer],
@@ -508,11 +512,14 @@ def chord_units(
 
     Parameters
     ----------
-    voxel, at_w, inverse : ndarray of int64, shape (p,)
-        Per pair: its voxel, in ``[0, n)`` (``n = obs.n_voxels``), its sum's index in
-        ``flat_chord`` and its leaf among the touched ones.
+    voxel, inverse, flat : ndarray of int64, shape (p,)
+        Per pair: its voxel, in ``[0, n)`` (``n = obs.n_voxels``), its leaf among the
+        touched ones and its flat index in the leaf's halo box.
+    row, offset : int
+        The touched leaves' rows in ``flat_chord``, and where in a row the sums start:
+        a pair's sum is at ``inverse * row + offset + flat``.
     flat_chord : ndarray of uint16
-        The touched leaves' stacked sums, flat; written in place (only where the
+        The touched leaves' stacked rows, flat; written in place (only where the
         copies agree).
     obs : VoxelObservations
         The step's observations, with chord shares.
@@ -544,8 +551,10 @@ def chord_units(
     moved = np.zeros(voxel.size, dtype=bool)
     agree = _compiled()[4](
         voxel,
-        at_w,
         inverse,
+        flat,
+        int(row),
+        int(offset),
         flat_chord,
         c(obs.chord, dtype=np.int64),
         c(obs.tail_chord, dtype=np.int64),

@@ -526,14 +526,15 @@ def gather_observations(
         moved_in = effective if unit is None else effective[unit]
         stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
     if with_chord:  # the summed chord shares: once per voxel where copies agree
-        at_w = inverse * (stacked.shape[1] // 2) + n_halo + flat  # in the uint16 view
+        row = stacked.shape[1] // 2  # the rows in uint16: the counts, then the sums
         flat_chord = flat_counts.view(np.uint16)
         w_input = None
         if unit is not None and gather_kernel.AVAILABLE:  # one pass, where the sums agree
             w_input = gather_kernel.chord_units(
-                voxel, at_w, inverse, flat_chord, obs, ef0, ef1, refit, new_counts
+                voxel, inverse, flat, row, n_halo, flat_chord, obs, ef0, ef1, refit, new_counts
             )
         if w_input is None:
+            at_w = inverse * row + n_halo + flat
             w_input = _advance_chord_pairs(
                 voxel, at_w, inverse, flat_chord, obs, unit, ef0, ef1, refit, new_counts
             )
