@@ -829,7 +829,7 @@ def _observe_one(
     state = ray_kernel.state_map(cells)
     start = (key0 - low) @ stride
     box = chord_box(config)
-    weights = np.empty(state.size if box else 0, dtype=np.int32)  # zeroed where marked
+    weights = np.zeros(state.size if box else 0, dtype=np.int32)
     chord = (key0, box, weights) if box else None
     ray_kernel.walk_segments(start, move, crossings, gap, np.abs(du), enter, state, chord)
     hit_cell = (hit_keys - low) @ stride

@@ -63,8 +63,7 @@ def _walk(
 
     With ``box > 0`` each voxel entered also gets its share of the segment's chord
     through the box of ``box`` keys per axis holding it (:func:`walk_segments`): added
-    to ``weights`` at its index (dense; a cell's sum starts at zero when the walk first
-    marks it, where ``state`` was zero) or listed in ``out_weight`` (sparse).
+    to ``weights`` at its index (dense) or listed in ``out_weight`` (sparse).
     """
     n, dim = crossings.shape
     nxt = np.empty(dim, dtype=np.int64)
@@ -92,8 +91,6 @@ def _walk(
         while True:  # the voxel entered at t, then the next crossing
             near = t >= near_from
             if dense:
-                if weigh and state[idx] == 0:  # a cell's first mark: its sum starts
-                    weights[idx] = 0
                 state[idx] |= NEAR if near else FAR
             else:
                 out[k] = idx
@@ -219,10 +216,7 @@ def walk_segments(
         share of the segment's chord through the box holding it: the part of the chord
         inside the voxel over the chord's length (equal shares where the chord has none),
         in whole :data:`CHORD_UNITS` rounded to nearest and at least 1; added into
-        ``weights`` (dense) or listed. ``None``: no shares. The dense map is read only
-        where ``state`` has a bit set on entry (the sums go on from there); elsewhere a
-        cell's sum starts at zero when the walk first marks it, so the map may be
-        allocated uninitialised (``np.empty``) where ``state`` starts zeroed.
+        ``weights`` (dense) or listed. ``None``: no shares.
 
     Returns
     -------
