@@ -361,13 +361,13 @@ def _own_rows(
 ) -> tuple[NDArray[np.uint8], NDArray[np.uint16] | None]:
     """A leaf's own counts, and sums where ``row`` holds them, from a row of :func:`_stored_rows`.
 
-    One copy: with sums, the counts and sums are views of the two halves of it.
+    One copy: with sums, the counts and sums are views of the two halves of it. A row
+    of counts only may come shaped ``(2, n_halo)``.
     """
     own = row.copy()
-    counts = own[: 2 * n_halo].reshape(2, n_halo)
     if own.size == 2 * n_halo:
-        return counts, None
-    return counts, own[2 * n_halo :].view(np.uint16)
+        return own.reshape(2, n_halo), None
+    return own[: 2 * n_halo].reshape(2, n_halo), own[2 * n_halo :].view(np.uint16)
 
 
 def _advance_chord_pairs(
@@ -526,15 +526,15 @@ def gather_observations(
         moved_in = effective if unit is None else effective[unit]
         stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
     if with_chord:  # the summed chord shares: once per voxel where copies agree
-        row = stacked.shape[1] // 2  # the rows in uint16: the counts, then the sums
+        per_row = stacked.shape[1] // 2  # uint16 per row: the counts, then the sums
         flat_chord = flat_counts.view(np.uint16)
         w_input = None
         if unit is not None and gather_kernel.AVAILABLE:  # one pass, where the sums agree
             w_input = gather_kernel.chord_units(
-                voxel, inverse, flat, row, n_halo, flat_chord, obs, ef0, ef1, refit, new_counts
+                voxel, inverse, flat, per_row, n_halo, flat_chord, obs, ef0, ef1, refit, new_counts
             )
         if w_input is None:
-            at_w = inverse * row + n_halo + flat
+            at_w = inverse * per_row + n_halo + flat
             w_input = _advance_chord_pairs(
                 voxel, at_w, inverse, flat_chord, obs, unit, ef0, ef1, refit, new_counts
             )
@@ -568,8 +568,9 @@ def gather_observations(
     full = grid.voxels_per_leaf
     touched_index = unpack_keys(touched, grid.dim)
     sel = np.flatnonzero(new_counts)
+    rows = stacked if with_chord else stacked.reshape(len(current), 2, n_halo)
     for j, r in zip(sel.tolist(), refit[sel].tolist(), strict=True):
-        counts_j, chord_j = _own_rows(stacked[j], n_halo)  # arrays of its own
+        counts_j, chord_j = _own_rows(rows[j], n_halo)  # arrays of its own
         leaf = current[j]  # one iteration per leaf with new counts
         moved = returns.get(j)
         if leaf is None:
