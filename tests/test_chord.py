@@ -285,6 +285,8 @@ def test_stored_rows_read_every_kind_of_leaf() -> None:
         np.testing.assert_array_equal(own_counts, want_counts[j])
         assert own_sums is not None
         np.testing.assert_array_equal(own_sums, want_sums[j])
-    looks = _stored_rows(leaves, n_halo, chord=False)
-    np.testing.assert_array_equal(looks.reshape(5, 2, n_halo), want_counts)
-    assert _own_rows(looks[0], n_halo)[1] is None
+    looks = _stored_rows(leaves, n_halo, chord=False).reshape(5, 2, n_halo)
+    np.testing.assert_array_equal(looks, want_counts)
+    own_counts, own_sums = _own_rows(looks[0], n_halo)
+    assert own_sums is None
+    assert own_counts.base is None  # the leaf's own array

@@ -361,12 +361,12 @@ def _own_rows(
 ) -> tuple[NDArray[np.uint8], NDArray[np.uint16] | None]:
     """A leaf's own counts, and sums where ``row`` holds them, from a row of :func:`_stored_rows`.
 
-    One copy: with sums, the counts and sums are views of the two halves of it. A row
-    of counts only may come shaped ``(2, n_halo)``.
+    One copy: a row of counts only, shaped ``(2, n_halo)``, is the counts' own array;
+    with sums, the counts and sums are views of the two halves of the leaf's one buffer.
     """
     own = row.copy()
-    if own.size == 2 * n_halo:
-        return own.reshape(2, n_halo), None
+    if own.ndim == 2:
+        return own, None
     return own[: 2 * n_halo].reshape(2, n_halo), own[2 * n_halo :].view(np.uint16)
 
 
