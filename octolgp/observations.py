@@ -903,7 +903,7 @@ def _observe_one(
         weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
         obs = one_scan_summary(dataclasses.replace(obs, weak_frees=weak), config.clear_scans)
     if box:
-        shares = np.where(free, weights[cell], 0).astype(np.int64)
+        shares = np.multiply(weights[cell], free, dtype=np.int64)
         obs = one_scan_chord(obs, shares, chord_looks(config))
     return obs
 

@@ -65,6 +65,13 @@ def test_compiled_and_numpy_shares_agree(dim: int) -> None:
     plain = _walk_free(o, e, scan, RES, 16, near, compiled=True)
     np.testing.assert_array_equal(plain[0], got[0])  # shares change no voxel
     assert plain[2].size == 0
+    for box in (1, 4):  # any power of two: boxes of one voxel get whole chords
+        small = _walk_free(o, e, scan, RES, 16, near, compiled=True, box=box)
+        numpy_form = _walk_free(o, e, scan, RES, 16, near, compiled=False, box=box)
+        for a, b in zip(small, numpy_form, strict=True):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="power of two"):
+        _walk_free(o, e, scan, RES, 16, near, compiled=True, box=12)
 
 
 @pytest.mark.parametrize("dim", [2, 3])
@@ -331,3 +338,44 @@ def test_one_by_one_equals_all_at_once_in_3d() -> None:
     for m in (a, b):
         m.occupancy(np.zeros((1, 3)))  # fits the deferred leaves
     assert_same_map(a, b)
+
+
+def test_stored_rows_read_every_kind_of_leaf() -> None:
+    """The gather's rows of counts and sums: from a leaf holding both in one buffer (as
+    the gather leaves them), in two arrays (as a map file gives them), without sums,
+    not yet sized, and new; each leaf's own arrays give back its row."""
+    from octolgp.engines.lattice import LatticeEvidence, _own_rows, _stored_rows
+    from octolgp.mapping.store import Leaf
+
+    rng = np.random.default_rng(5)
+    n_halo = 6
+    counts = rng.integers(0, 9, (4, 2, n_halo)).astype(np.uint8)
+    sums = rng.integers(0, 65535, (4, n_halo)).astype(np.uint16)
+    row = np.concatenate([counts[0].reshape(-1), sums[0].view(np.uint8)])
+    one_buffer = _own_rows(row, n_halo)
+    assert one_buffer[1] is not None
+    none = np.zeros(0, np.uint16)
+    hits = np.zeros(0, np.int64), np.zeros((0, 2))
+    evidence = [
+        LatticeEvidence(one_buffer[0], *hits, chord=one_buffer[1]),
+        LatticeEvidence(counts[1].copy(), *hits, chord=sums[1].copy()),
+        LatticeEvidence(counts[2].copy(), *hits, chord=none),
+        LatticeEvidence(np.zeros((2, 0), np.uint8), *hits, chord=sums[3].copy()),
+    ]
+    leaves = [Leaf(np.zeros(2, np.int64), ev) for ev in evidence] + [None]
+    rows = _stored_rows(leaves, n_halo, chord=True)
+    want_counts = np.concatenate([counts[:3], np.zeros((2, 2, n_halo), np.uint8)])
+    zero = np.zeros((1, n_halo), np.uint16)
+    want_sums = np.concatenate([sums[:2], zero, sums[3:], zero])
+    np.testing.assert_array_equal(rows[:, : 2 * n_halo].reshape(5, 2, n_halo), want_counts)
+    np.testing.assert_array_equal(rows[:, 2 * n_halo :].copy().view(np.uint16), want_sums)
+    for j in range(5):
+        own_counts, own_sums = _own_rows(rows[j], n_halo)
+        np.testing.assert_array_equal(own_counts, want_counts[j])
+        assert own_sums is not None
+        np.testing.assert_array_equal(own_sums, want_sums[j])
+    looks = _stored_rows(leaves, n_halo, chord=False).reshape(5, 2, n_halo)
+    np.testing.assert_array_equal(looks, want_counts)
+    own_counts, own_sums = _own_rows(looks[0], n_halo)
+    assert own_sums is None
+    assert own_counts.base is None  # the leaf's own array

@@ -8,9 +8,15 @@ import numpy as np
 import pytest
 
 from octolgp import Hyperparameters, MapConfig, OnlineConfig, OnlineMap, Scan
+from octolgp.config import LatticeConfig
 from octolgp.engines import gather_kernel
 from octolgp.engines.known import halo_pairs_numpy
-from octolgp.engines.lattice import LatticeEvidence, _voxel_units, gather_observations
+from octolgp.engines.lattice import (
+    LatticeEvidence,
+    _advance_chord_pairs,
+    _voxel_units,
+    gather_observations,
+)
 from octolgp.mapping.grid import LeafGrid
 from octolgp.observations import advance, observe
 from octolgp.sweep import swept_keys
@@ -94,16 +100,25 @@ def test_advance_equals_the_numpy_rule(dim: int, clear_scans: int) -> None:
 
 
 @pytest.mark.parametrize(
-    ("dim", "clear_scans", "fresh"), [(2, 0, True), (2, 2, False), (3, 3, True)]
+    ("dim", "clear_scans", "fresh", "free_evidence"),
+    [
+        (2, 0, True, "looks"),
+        (2, 2, False, "looks"),
+        (3, 3, True, "looks"),
+        (2, 0, True, "chord"),
+        (3, 3, True, "chord"),
+    ],
 )
 def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
-    dim: int, clear_scans: int, fresh: bool, monkeypatch: pytest.MonkeyPatch
+    dim: int, clear_scans: int, fresh: bool, free_evidence: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
 
     hp = Hyperparameters(length_scale=0.5, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
     base = MapConfig(dim=dim, resolution=0.1, hyperparameters=hp)
     config = dataclasses.replace(
-        base, online=dataclasses.replace(base.online, clear_scans=clear_scans)
+        base,
+        online=dataclasses.replace(base.online, clear_scans=clear_scans),
+        lattice=dataclasses.replace(base.lattice, free_evidence=free_evidence),
     )
     scans = _scans(dim, 5, 40 + dim)
     m = OnlineMap(config)
@@ -131,6 +146,8 @@ def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
             np.testing.assert_array_equal(ea.hit_keys, eb.hit_keys)
             np.testing.assert_array_equal(ea.hits, eb.hits)
             np.testing.assert_array_equal(ea.swept, eb.swept)
+            np.testing.assert_array_equal(ea.chord, eb.chord)
+            assert ea.chord.size == (ea.counts.shape[1] if free_evidence == "chord" else 0)
             np.testing.assert_array_equal(la.index, lb.index)
     assert len(a.changed) > 0
     if fresh:
@@ -170,3 +187,68 @@ def test_unit_counts_equal_the_numpy_units(differ: bool) -> None:
         np.testing.assert_array_equal(got[0][held], h[held])
         np.testing.assert_array_equal(got[1][held], f[held])
         assert not got[0][np.setdiff1d(np.arange(n), held)].any()
+
+
+@pytest.mark.parametrize("differ", [False, True])
+@pytest.mark.parametrize("clear_scans", [0, 3])
+@pytest.mark.parametrize("n_scans", [1, 3])
+def test_chord_units_equal_the_numpy_form(differ: bool, clear_scans: int, n_scans: int) -> None:
+    """The compiled chord step against its numpy form: the same sums written to every
+    pair, the same leaves refitted and stored, the same pairs whose input moved; and
+    nothing written where a voxel's copies hold different sums."""
+    config = MapConfig(
+        dim=2,
+        resolution=0.1,
+        online=OnlineConfig(clear_scans=clear_scans),
+        lattice=LatticeConfig(free_evidence="chord"),
+    ).resolve()
+    obs = observe(_scans(2, n_scans, 11 + clear_scans), config)
+    n = obs.n_voxels
+    rng = np.random.default_rng(3 + clear_scans)
+    n_halo, n_leaves = 60, 80
+    chord = rng.integers(0, 3000, (n_leaves, n_halo)).astype(np.uint16)
+    chord[rng.random(chord.shape) < 0.1] = 65535  # some saturated
+    voxel = np.sort(rng.integers(0, n, 2 * n))  # some voxels without a copy
+    slot = rng.permutation(n_leaves * n_halo)[: voxel.size]  # each copy its own place
+    inverse, flat = slot // n_halo, slot % n_halo
+    at_w = inverse * n_halo + flat
+    first = np.r_[0, np.flatnonzero(np.diff(voxel)) + 1]  # each voxel's first copy
+    owner = np.repeat(first, np.diff(np.r_[first, voxel.size]))
+    flat_chord = chord.reshape(-1)
+    flat_chord[at_w] = flat_chord[at_w[owner]]  # every copy holds its voxel's sum
+    if differ:  # one copy of a voxel with several copies disagrees
+        i = int(np.flatnonzero(owner != np.arange(voxel.size))[0])
+        flat_chord[at_w[i]] ^= 1
+    ef0 = rng.integers(0, 2, n) * rng.integers(1, 4, n)
+    ef1 = rng.integers(0, 2, n) * rng.integers(1, 4, n)
+    counts0 = rng.integers(0, 2, n), rng.integers(0, max(clear_scans, 1) + 1, n)
+    refit = rng.random(n_leaves) < 0.1  # leaves the counts already change
+    new_counts = refit | (rng.random(n_leaves) < 0.1)
+    out = []
+    for compiled in (True, False):
+        sums = flat_chord.copy()
+        marks = refit.copy(), new_counts.copy()
+        if compiled:
+            moved = gather_kernel.chord_units(
+                voxel, inverse, flat, n_halo, 0, sums, obs, counts0, (ef0, ef1), *marks
+            )
+            if differ:  # the numpy form serves, nothing written
+                assert moved is None
+                np.testing.assert_array_equal(sums, flat_chord)
+                np.testing.assert_array_equal(marks[0], refit)
+                np.testing.assert_array_equal(marks[1], new_counts)
+                continue
+        else:
+            unit = voxel
+            moved = _advance_chord_pairs(
+                voxel, at_w, inverse, sums, obs, unit, counts0, (ef0, ef1), *marks
+            )
+        assert moved is not None
+        out.append((sums, marks[0], marks[1], moved, refit, new_counts))
+    if not differ:
+        (a, *rest_a), (b, *rest_b) = out
+        np.testing.assert_array_equal(a, b)
+        for x, y in zip(rest_a, rest_b, strict=True):
+            np.testing.assert_array_equal(x, y)
+        assert out[0][3].any()
+        assert not np.array_equal(out[0][0], flat_chord)

@@ -452,8 +452,13 @@ def test_gather_equals_the_straightforward_path_when_copies_differ() -> None:
     assert a.changed
     assert a.kept
     assert _evidence_state(a) == _evidence_state(b)
-    for _, leaf in [*a.changed, *a.kept]:  # each leaf owns its counts
-        assert lattice_evidence(leaf).counts.base is None
+    # each leaf owns its counts (and chord sums): one buffer of its own, of just them
+    evs = [lattice_evidence(leaf) for _, leaf in [*a.changed, *a.kept]]
+    owners = [ev.counts if ev.counts.base is None else ev.counts.base for ev in evs]
+    assert len({id(o) for o in owners}) == len(owners)
+    for ev, owner in zip(evs, owners, strict=True):
+        assert owner.nbytes == ev.counts.nbytes + ev.chord.nbytes
+        assert ev.chord.size == 0 or np.shares_memory(ev.chord, owner)
 
 
 def test_gather_equals_the_straightforward_path_on_one_short_beam() -> None:

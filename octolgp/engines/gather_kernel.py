@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from octolgp.geometry.keys import KEY_BITS
-from octolgp.observations import VoxelObservations, VoxelState
+from octolgp.observations import CHORD_CAP, VoxelObservations, VoxelState
 
 AVAILABLE = importlib.util.find_spec("numba") is not None
 """Whether the compiled loops can run (numba is installed; it is imported on first use)."""
@@ -215,9 +215,82 @@ def _unit_counts(
     return True
 
 
+def _chord_units(
+    voxel: IntArray,
+    inverse: IntArray,
+    flat: IntArray,
+    row: int,
+    offset: int,
+    flat_chord: NDArray[np.uint16],
+    chord: IntArray,
+    strong_chord: IntArray,
+    tail_chord: IntArray,
+    obs_hits: IntArray,
+    clear_scans: int,
+    hits0: IntArray,
+    frees0: IntArray,
+    free0: IntArray,
+    free1: IntArray,
+    w0: IntArray,
+    seen: NDArray[np.bool_],
+    refit: NDArray[np.bool_],
+    new_counts: NDArray[np.bool_],
+    moved: NDArray[np.bool_],
+) -> bool:  # pragma: no cover - compiled; tested through the compiled form
+    """Advance each voxel's summed chord shares once and write them to its pairs.
+
+    False, and nothing written, where two copies of a voxel hold different sums.
+    """
+    for i in range(voxel.size):  # each voxel's sum, read once from its copies
+        v = voxel[i]
+        w = flat_chord[inverse[i] * row + offset + flat[i]]
+        if seen[v]:
+            if w0[v] != w:
+                return False
+        else:
+            seen[v] = True
+            w0[v] = w
+    n = w0.size
+    looks = chord.shape[1]
+    w1 = np.empty(n, dtype=np.int64)
+    flag = np.zeros(n, dtype=np.uint8)  # bit 0: the GP input moved, bit 1: the sum
+    for v in range(n):  # the rule of advance_chord, then what moved
+        if not seen[v]:
+            continue
+        before = w0[v]
+        left = min(looks - frees0[v], looks)  # looks the free count still counts
+        if clear_scans and obs_hits[v] > 0:
+            w = tail_chord[v]
+        elif left <= 0:
+            w = before
+        elif clear_scans and hits0[v] > 0:
+            w = before + strong_chord[v, left - 1]
+        else:
+            w = before + chord[v, left - 1]
+        w = min(w, CHORD_CAP)
+        w1[v] = w
+        if (w if free1[v] > 0 else 0) != (before if free0[v] > 0 else 0):
+            flag[v] = 3
+        elif w != before:
+            flag[v] = 2
+    for i in range(voxel.size):  # each pair's new sum; the leaves that change
+        v = voxel[i]
+        flat_chord[inverse[i] * row + offset + flat[i]] = w1[v]
+        if flag[v] & 1:
+            refit[inverse[i]] = True
+            moved[i] = True
+        if flag[v] & 2:
+            new_counts[inverse[i]] = True
+    return True
+
+
 @functools.cache
 def _compiled() -> tuple[
-    Callable[..., None], Callable[..., None], Callable[..., int], Callable[..., bool]
+    Callable[..., None],
+    Callable[..., None],
+    Callable[..., int],
+    Callable[..., bool],
+    Callable[..., bool],
 ]:
     """The loops compiled by numba (cached on disk beside the module after the first run)."""
     from numba import njit
@@ -226,7 +299,8 @@ def _compiled() -> tuple[
     rule: Callable[..., None] = njit(cache=True, nogil=True)(_advance)
     scatter: Callable[..., int] = njit(cache=True, nogil=True)(_scatter)
     units: Callable[..., bool] = njit(cache=True, nogil=True)(_unit_counts)
-    return pairs, rule, scatter, units
+    chord: Callable[..., bool] = njit(cache=True, nogil=True)(_chord_units)
+    return pairs, rule, scatter, units, chord
 
 
 def halo_pairs(
@@ -424,3 +498,90 @@ def unit_counts(
     seen = np.zeros(n, dtype=bool)
     agree = _compiled()[3](voxel, at_h, n_halo, flat_counts, h0, f0, seen)
     return (h0, f0) if agree else None
+
+
+def chord_units(
+    voxel: IntArray,
+    inverse: IntArray,
+    flat: IntArray,
+    row: int,
+    offset: int,
+    flat_chord: NDArray[np.uint16],
+    obs: VoxelObservations,
+    counts0: tuple[NDArray[np.integer], NDArray[np.integer]],
+    free01: tuple[NDArray[np.integer], NDArray[np.integer]],
+    refit: NDArray[np.bool_],
+    new_counts: NDArray[np.bool_],
+) -> NDArray[np.bool_] | None:
+    """Advance the summed chord shares once per voxel and write them to its copies.
+
+    The chord part of :func:`octolgp.engines.lattice.gather_observations` where the
+    copies of each voxel agree: each voxel's sum read once from its (voxel, leaf) pairs,
+    advanced by :func:`octolgp.observations.advance_chord`, and written back to each
+    pair.
+
+    Parameters
+    ----------
+    voxel, inverse, flat : ndarray of int64, shape (p,)
+        Per pair: its voxel, in ``[0, n)`` (``n = obs.n_voxels``), its leaf among the
+        touched ones and its flat index in the leaf's halo box.
+    row, offset : int
+        The touched leaves' rows in ``flat_chord``, and where in a row the sums start:
+        a pair's sum is at ``inverse * row + offset + flat``.
+    flat_chord : ndarray of uint16
+        The touched leaves' stacked rows, flat; written in place (only where the
+        copies agree).
+    obs : VoxelObservations
+        The step's observations, with chord shares.
+    counts0 : tuple of ndarray of int, shape (n,) each
+        Each voxel's stored return and free counts before the step (which looks its
+        free count still counts).
+    free01 : tuple of ndarray of int, shape (n,) each
+        Each voxel's effective free count before and after the step: a sum is the GP's
+        input where the count is positive.
+    refit, new_counts : ndarray of bool, shape (touched,)
+        Set in place for the leaves holding a pair whose GP input / stored sum moved.
+
+    Returns
+    -------
+    ndarray of bool, shape (p,), or None
+        The pairs whose GP input moved; ``None`` (nothing written or set) when two
+        copies of a voxel hold different sums.
+
+    Raises
+    ------
+    RuntimeError
+        If numba is not available.
+    ValueError
+        If ``obs`` holds no chord shares.
+    """
+    if not AVAILABLE:
+        raise RuntimeError("the compiled gather needs numba")
+    if obs.chord is None or obs.strong_chord is None or obs.tail_chord is None:
+        raise ValueError("the observations hold no chord shares")
+    n = obs.n_voxels
+    c = np.ascontiguousarray
+    moved = np.zeros(voxel.size, dtype=bool)
+    agree = _compiled()[4](
+        voxel,
+        inverse,
+        flat,
+        int(row),
+        int(offset),
+        flat_chord,
+        np.asarray(obs.chord, dtype=np.int64),  # one scan's: columns of stride 0
+        np.asarray(obs.strong_chord, dtype=np.int64),
+        c(obs.tail_chord, dtype=np.int64),
+        c(obs.hits, dtype=np.int64),
+        int(obs.clear_scans),
+        c(counts0[0], dtype=np.int64),
+        c(counts0[1], dtype=np.int64),
+        c(free01[0], dtype=np.int64),
+        c(free01[1], dtype=np.int64),
+        np.zeros(n, dtype=np.int64),
+        np.zeros(n, dtype=bool),
+        refit,
+        new_counts,
+        moved,
+    )
+    return moved if agree else None

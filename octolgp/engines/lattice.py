@@ -317,39 +317,105 @@ def _voxel_units(
     return voxel, np.arange(n), h, f
 
 
-def _stored_counts(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint8]:
-    """The stored counts of leaves, zero for a new leaf or one not yet sized.
+def _stored_rows(leaves: list[Leaf | None], n_halo: int, chord: bool) -> NDArray[np.uint8]:
+    """The stored counts of leaves, and with ``chord`` their summed chord shares, as rows.
+
+    Zero for a new leaf, counts not yet sized, or sums not kept. A row holds the
+    counts' bytes (``2 * n_halo``: :attr:`LatticeEvidence.counts` flat) and, with
+    ``chord``, then the sums' (``n_halo`` uint16, native order: the row's second half
+    viewed as uint16 is :attr:`LatticeEvidence.chord`). A leaf whose counts and sums are
+    the two halves of one buffer (:func:`_own_rows` gives them so) is read in one copy.
 
     Returns
     -------
-    ndarray of uint8, shape (len(leaves), 2, n_halo)
+    ndarray of uint8, shape (len(leaves), 2 * n_halo) or (len(leaves), 4 * n_halo)
     """
-    out = np.zeros((len(leaves), 2, n_halo), dtype=np.uint8)
+    width = (4 if chord else 2) * n_halo
+    out = np.empty((len(leaves), width), dtype=np.uint8)  # each row written once
+    evidence = evidence_of([leaf for leaf in leaves if leaf is not None])
+    if len(evidence) < len(leaves):  # new leaves: zero
+        out[[j for j, leaf in enumerate(leaves) if leaf is None]] = 0
     rows = [j for j, leaf in enumerate(leaves) if leaf is not None]
-    counts = [ev.counts for ev in evidence_of([leaf for leaf in leaves if leaf is not None])]
-    sized = [c.shape[1] == n_halo for c in counts]
-    if not all(sized):
-        rows = list(itertools.compress(rows, sized))
-        counts = list(itertools.compress(counts, sized))
-    for j, c in zip(rows, counts, strict=True):  # straight into place: no stacked copy
-        out[j] = c
+    if not chord:
+        counts_of = out.reshape(len(leaves), 2, n_halo)
+        for j, ev in zip(rows, evidence, strict=True):  # straight into place: no stacked copy
+            if ev.counts.shape[1] == n_halo:
+                counts_of[j] = ev.counts
+            else:
+                counts_of[j] = 0
+        return out
+    sums_of = out.view(np.uint16)[:, n_halo:]
+    for j, ev in zip(rows, evidence, strict=True):
+        c, w = ev.counts, ev.chord
+        whole = w.base
+        if whole is not None and c.base is whole and whole.nbytes == width:  # one buffer
+            out[j] = whole
+            continue
+        out[j, : 2 * n_halo] = c.reshape(-1) if c.shape[1] == n_halo else 0
+        sums_of[j] = w if w.size == n_halo else 0
     return out
 
 
-def _stored_chord(leaves: list[Leaf | None], n_halo: int) -> NDArray[np.uint16]:
-    """The summed chord shares of leaves, zero for a new leaf or one keeping none.
+def _own_rows(
+    row: NDArray[np.uint8], n_halo: int
+) -> tuple[NDArray[np.uint8], NDArray[np.uint16] | None]:
+    """A leaf's own counts, and sums where ``row`` holds them, from a row of :func:`_stored_rows`.
+
+    One copy: a row of counts only, shaped ``(2, n_halo)``, is the counts' own array;
+    with sums, the counts and sums are views of the two halves of the leaf's one buffer.
+    """
+    own = row.copy()
+    if own.ndim == 2:
+        return own, None
+    return own[: 2 * n_halo].reshape(2, n_halo), own[2 * n_halo :].view(np.uint16)
+
+
+def _advance_chord_pairs(
+    voxel: IntArray,
+    at_w: IntArray,
+    inverse: IntArray,
+    flat_chord: NDArray[np.uint16],
+    obs: VoxelObservations,
+    unit: IntArray | None,
+    counts0: tuple[NDArray[np.integer], NDArray[np.integer]],
+    free01: tuple[NDArray[np.integer], NDArray[np.integer]],
+    refit: NDArray[np.bool_],
+    new_counts: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """Advance the pairs' summed chord shares: once per voxel where copies agree.
+
+    The numpy form of :func:`octolgp.engines.gather_kernel.chord_units`, which also
+    serves where copies differ. ``unit`` is the counts' (``None``: each copy a unit of
+    its own), ``counts0`` the units' stored return and free counts before the step and
+    ``free01`` their effective free counts before and after it; writes the new sums
+    into ``flat_chord`` and sets ``refit`` / ``new_counts`` for the leaves whose GP
+    input / stored sum moved.
 
     Returns
     -------
-    ndarray of uint16, shape (len(leaves), n_halo)
+    ndarray of bool, shape (p,)
+        The pairs whose GP input moved.
     """
-    out = np.zeros((len(leaves), n_halo), dtype=np.uint16)
-    for j, leaf in enumerate(leaves):  # one iteration per touched leaf
-        if leaf is not None:
-            chord = lattice_evidence(leaf).chord
-            if chord.size == n_halo:
-                out[j] = chord
-    return out
+    (h0, f0), (ef0, ef1) = counts0, free01
+    w_pairs = flat_chord[at_w].astype(np.int64)
+    w_unit, w_at, w0, h_w, f_w = None, voxel, w_pairs, h0, f0
+    if unit is not None:  # per voxel where the counts' copies agree and the sums' too
+        w_unit, w_at, w0, _ = _voxel_units(w_pairs, w_pairs, voxel, obs.n_voxels)
+        if w_unit is None:
+            h_w, f_w = h0[unit], f0[unit]
+    w1 = advance_chord(w0, h_w, f_w, obs, w_at)
+    if w_unit is None:  # per copy: the counts' units to copies
+        free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
+    else:
+        free0, free1 = ef0, ef1
+    w_input: NDArray[np.bool_] = np.where(free1 > 0, w1, 0) != np.where(free0 > 0, w0, 0)
+    w_stored = w_input | (w1 != w0)
+    if w_unit is not None:
+        w1, w_input, w_stored = w1[w_unit], w_input[w_unit], w_stored[w_unit]
+    flat_chord[at_w] = w1
+    refit[inverse[w_input]] = True
+    new_counts[inverse[w_stored]] = True
+    return w_input
 
 
 def gather_observations(
@@ -406,10 +472,11 @@ def gather_observations(
     keys = touched.tolist()
     n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
     current = [lookup(key) for key in keys]  # one call per touched leaf
-    counts = _stored_counts(current, n_halo)
+    with_chord = obs.chord is not None  # the summed chord shares beside the counts
+    stacked = _stored_rows(current, n_halo, with_chord)
     cap = config.lattice.evidence_cap
-    at_h = inverse * (2 * n_halo) + flat  # each pair's return count in counts.ravel()
-    flat_counts = counts.reshape(-1)
+    at_h = inverse * stacked.shape[1] + flat  # each pair's return count in stacked.ravel()
+    flat_counts = stacked.reshape(-1)
     # the rule and what changes, per unit (a voxel, or a copy should copies differ)
     once = None
     unit: IntArray | None
@@ -462,29 +529,29 @@ def gather_observations(
     if fresh:  # the pairs whose GP input moved
         moved_in = effective if unit is None else effective[unit]
         stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
-    chord_rows = None
-    if obs.chord is not None:  # the summed chord shares: once per voxel where copies agree
-        chord_rows = _stored_chord(current, n_halo)
-        at_w = inverse * n_halo + flat
-        flat_chord = chord_rows.reshape(-1)
-        w_pairs = flat_chord[at_w].astype(np.int64)
-        w_unit, w_at, w0, h_w, f_w = None, voxel, w_pairs, h0, f0
-        if unit is not None:  # per voxel where the counts' copies agree and the sums' too
-            w_unit, w_at, w0, _ = _voxel_units(w_pairs, w_pairs, voxel, obs.n_voxels)
-            if w_unit is None:
-                h_w, f_w = h0[unit], f0[unit]
-        w1 = advance_chord(w0, h_w, f_w, obs, w_at)
-        if w_unit is None:  # per copy: the counts' units to copies
-            free0, free1 = (ef0, ef1) if unit is None else (ef0[unit], ef1[unit])
-        else:
-            free0, free1 = ef0, ef1
-        w_input = np.where(free1 > 0, w1, 0) != np.where(free0 > 0, w0, 0)
-        w_stored = w_input | (w1 != w0)
-        if w_unit is not None:
-            w1, w_input, w_stored = w1[w_unit], w_input[w_unit], w_stored[w_unit]
-        flat_chord[at_w] = w1
-        refit[inverse[w_input]] = True
-        new_counts[inverse[w_stored]] = True
+    if with_chord:  # the summed chord shares: once per voxel where copies agree
+        per_row = stacked.shape[1] // 2  # uint16 per row: the counts, then the sums
+        flat_chord = flat_counts.view(np.uint16)
+        w_input = None
+        if unit is not None and gather_kernel.AVAILABLE:  # one pass, where the sums agree
+            w_input = gather_kernel.chord_units(
+                voxel,
+                inverse,
+                flat,
+                per_row,
+                n_halo,
+                flat_chord,
+                obs,
+                (h0, f0),
+                (ef0, ef1),
+                refit,
+                new_counts,
+            )
+        if w_input is None:
+            at_w = inverse * per_row + n_halo + flat
+            w_input = _advance_chord_pairs(
+                voxel, at_w, inverse, flat_chord, obs, unit, (h0, f0), (ef0, ef1), refit, new_counts
+            )
         if fresh:
             stale_leaf = np.concatenate([stale_leaf, inverse[w_input]])
             stale_flat = np.concatenate([stale_flat, flat[w_input]])
@@ -515,23 +582,23 @@ def gather_observations(
     full = grid.voxels_per_leaf
     touched_index = unpack_keys(touched, grid.dim)
     sel = np.flatnonzero(new_counts)
+    rows = stacked if with_chord else stacked.reshape(len(current), 2, n_halo)
     for j, r in zip(sel.tolist(), refit[sel].tolist(), strict=True):
-        row = counts[j]  # a view: the leaf's own array is its copy
-        leaf = current[j]  # one iteration per leaf with new counts: arrays of its own
+        counts_j, chord_j = _own_rows(rows[j], n_halo)  # arrays of its own
+        leaf = current[j]  # one iteration per leaf with new counts
         moved = returns.get(j)
-        chord_j = _NONE_CHORD if chord_rows is None else chord_rows[j].copy()
         if leaf is None:
             hit_keys, hits = moved or (np.zeros(0, np.int64), np.zeros((0, grid.dim)))
             swept_j = new_swept.get(j, _NONE_SWEPT)
-            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
+            chord_j = _NONE_CHORD if chord_j is None else chord_j
+            evidence = LatticeEvidence(counts_j, hit_keys, hits, swept_j, chord_j)
             leaf = Leaf(touched_index[j].copy(), evidence)
         else:
-            ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_counts
+            ev = cast(LatticeEvidence, leaf.evidence)  # checked by _stored_rows
             hit_keys, hits = (ev.hit_keys, ev.hits) if moved is None else moved
             swept_j = new_swept.get(j, ev.swept)
-            if chord_rows is None:
-                chord_j = ev.chord
-            evidence = LatticeEvidence(row.copy(), hit_keys, hits, swept_j, chord_j)
+            chord_j = ev.chord if chord_j is None else chord_j
+            evidence = LatticeEvidence(counts_j, hit_keys, hits, swept_j, chord_j)
             leaf = leaf.with_evidence(evidence)
         if r:
             changed.append((keys[j], leaf))

@@ -70,6 +70,9 @@ def _walk(
     t_next = np.empty(dim)  # each axis's next crossing (inf: none left), computed once
     coord = np.empty(dim, dtype=np.int64)
     weigh = box > 0
+    shift = 0  # box is a power of two: floor division by it is a shift
+    while (1 << shift) < box:
+        shift += 1
     held = np.empty(3 * max(box, 1) + 1, dtype=np.int64)  # the current box's voxels
     t_held = np.empty(3 * max(box, 1) + 1)  # ... and where the segment entered each
     k = 0
@@ -106,14 +109,14 @@ def _walk(
                         t = t_next[a]
                 if weigh:
                     c = coord[best] + sign[s, best]
-                    t_out = t if c // box != coord[best] // box else -1.0
+                    t_out = t if c >> shift != coord[best] >> shift else -1.0
                     coord[best] = c
             if weigh and t_out >= 0.0:  # the box's voxels' shares of the chord through it
                 total = t_out - t_held[0]
                 for i in range(n_held):
                     t_end = t_held[i + 1] if i + 1 < n_held else t_out
                     share = (t_end - t_held[i]) / total if total > 0.0 else 1.0 / n_held
-                    q = max(1, int(np.floor(share * CHORD_UNITS + 0.5)))
+                    q = max(1, int(share * CHORD_UNITS + 0.5))  # floor: it is positive
                     if dense:
                         weights[held[i]] += q
                     else:
@@ -208,12 +211,12 @@ def walk_segments(
         bits kept. ``None``: list the voxels instead.
     chord : tuple, optional
         ``(key0, box, weights)``: each segment's origin voxel key, shape (b, d), the edge
-        of the boxes (keys ``box`` apart per axis, aligned to key 0) and, with ``state``,
-        a dense map of int32 over the indices. Each voxel entered gets its share of the
-        segment's chord through the box holding it: the part of the chord inside the
-        voxel over the chord's length (equal shares where the chord has none), in whole
-        :data:`CHORD_UNITS` rounded to nearest and at least 1; added into ``weights``
-        (dense) or listed. ``None``: no shares.
+        of the boxes (keys ``box`` apart per axis, aligned to key 0; a power of two) and,
+        with ``state``, a dense map of int32 over the indices. Each voxel entered gets its
+        share of the segment's chord through the box holding it: the part of the chord
+        inside the voxel over the chord's length (equal shares where the chord has none),
+        in whole :data:`CHORD_UNITS` rounded to nearest and at least 1; added into
+        ``weights`` (dense) or listed. ``None``: no shares.
 
     Returns
     -------
@@ -229,6 +232,8 @@ def walk_segments(
     ------
     RuntimeError
         If numba is not available.
+    ValueError
+        If ``box`` is not a power of two.
     """
     if not AVAILABLE:
         raise RuntimeError("the compiled traversal needs numba")
@@ -244,6 +249,8 @@ def walk_segments(
     out_weight = np.zeros(0, dtype=np.int64)
     if chord is not None:
         key0, box, dense_weights = chord
+        if box < 1 or box & (box - 1):
+            raise ValueError(f"the boxes' edge must be a power of two, got {box}")
         sign = np.sign(move)
         if dense_weights is not None:
             weights = dense_weights
