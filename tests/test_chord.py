@@ -278,43 +278,6 @@ def test_learning_weighs_free_voxels_by_their_looks() -> None:
     assert np.any(looks_seen > 1)
 
 
-def test_calibration_weighs_free_voxels_as_the_fit() -> None:
-    """The voxel observations α, β are calibrated on (``weighting="fit"``) weigh a free
-    voxel ``chord_weight`` times its summed shares, those a leaf keeps after the same
-    scans; in a region, each as in the whole result."""
-    from octolgp.geometry.keys import KeyRegion, coord_to_key
-    from octolgp.gp.learning import voxel_observations
-    from octolgp.mapping.grid import LeafGrid
-
-    scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1)]]
-    config = _chord2d(scan_precision=None).resolve()  # the scans as given
-    points, y, weights = voxel_observations(scans, config, weighting="fit")
-    m = OnlineMap(config)
-    m.insert_batch(scans)
-    grid = LeafGrid.from_config(m.config)
-    box = grid.side + 2 * grid.halo_voxels
-    keys = coord_to_key(points[y < 0], config.resolution, config.tree_depth)
-    leaves = dict(m.leaves())
-    leaf_of = keys // grid.side
-    local = keys - leaf_of * grid.side + grid.halo_voxels
-    flat = local @ (box ** np.arange(2))
-    packed = pack_keys(leaf_of)
-    kept = np.array(
-        [leaves[k].evidence.chord[f] for k, f in zip(packed.tolist(), flat.tolist(), strict=True)]  # type: ignore[attr-defined]
-    )
-    assert np.all(kept > 0)
-    want = config.lattice.chord_weight * kept / ray_kernel.CHORD_UNITS
-    np.testing.assert_allclose(weights[y < 0], want, rtol=1e-12)
-    region = KeyRegion.around(np.array([[0.5, 0.0]]), np.array([1.5]), RES, config.tree_depth)
-    p2, y2, w2 = voxel_observations(scans, config, region, weighting="fit")
-    whole = {tuple(p): (t, w) for p, t, w in zip(points.tolist(), y, weights, strict=True)}
-    assert 0 < p2.shape[0] < points.shape[0]
-    for p, t, w in zip(p2.tolist(), y2, w2, strict=True):
-        assert whole[tuple(p)] == (t, w)
-    with pytest.raises(ValueError, match="weighting"):
-        voxel_observations(scans, config, weighting="chord")
-
-
 def test_one_by_one_equals_all_at_once_in_3d() -> None:
     """3D leaves share a voxel among up to eight halo boxes: every copy gets the sums."""
     from octolgp import Hyperparameters

@@ -47,7 +47,7 @@ from octolgp.gp.likelihood import log_marginal_likelihood, loo_log_predictive, l
 from octolgp.gp.plsc import fit_plsc
 from octolgp.gp.quadrature import QuadratureSet, cluster_items, points_set, quadrature_spacing
 from octolgp.memory import release_free_memory
-from octolgp.observations import advance, advance_chord, effective_counts, free_inputs, observe
+from octolgp.observations import advance, effective_counts, observe
 from octolgp.partition import Cluster, partition
 from octolgp.scan import FloatArray, Scan
 from octolgp.training import (
@@ -281,11 +281,7 @@ def refine_by_loo(
 
 
 def voxel_observations(
-    scans: Iterable[Scan],
-    config: MapConfig,
-    region: KeyRegion | None = None,
-    *,
-    weighting: str = "looks",
+    scans: Iterable[Scan], config: MapConfig, region: KeyRegion | None = None
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Every voxel the scans observe (in ``region``), as the lattice engine sees it after them.
 
@@ -293,16 +289,15 @@ def voxel_observations(
     (:func:`octolgp.observations.advance` from nothing, then
     :func:`~octolgp.observations.effective_counts`): a voxel with a return is occupied,
     at its kept return, weighing its return count; one seen only free is free, at its
-    centre, weighing ``lattice.free_weight`` times its free count (``weighting =
-    "looks"``, what the kernel is learnt on), or as the leaves weigh it (``"fit"``: with
-    ``lattice.free_evidence = "chord"``, ``chord_weight`` times its summed chord shares,
-    :func:`octolgp.observations.free_inputs`; what α, β are calibrated on). The kernel
-    is learnt on looks whichever weighting the leaves fit with: a chord share is a
-    voxel's part of a chord through the 16-voxel box holding it, and a learning set is a
-    ball spanning several boxes, so chord weights would tie the sets' balance of free
-    and occupied evidence to where the box borders fall; on sparse scans, where most
-    chords cross a box whole and each voxel's share is small, that balance leaves too
-    little free evidence to bound the length scale. Where later free looks
+    centre, weighing ``lattice.free_weight`` times its free count. The sets weigh free
+    voxels so whichever ``lattice.free_evidence`` the leaves fit with, for the kernel and
+    for α, β alike: a chord share is a voxel's part of a chord through the 16-voxel box
+    holding it, and a learning set is a ball spanning several boxes, so chord weights
+    would tie the sets' balance of free and occupied evidence to where the box borders
+    fall. On sparse scans, where most chords cross a box whole and each voxel's share is
+    small, that balance leaves too little free evidence to bound the length scale, and
+    α, β calibrated by LOO on chord-weighted sets give the maps' held-out probabilities a
+    worse Brier score than those calibrated on looks (BENCHMARKS.md). Where later free looks
     forgot every return (a world that changed while the scans were taken), the voxels
     with returns count as occupied anyway, so that there is something to learn from.
     With a ``region`` (:func:`octolgp.observations.observe`'s) only its voxels are
@@ -317,28 +312,11 @@ def voxel_observations(
     weights : ndarray of shape (n,)
         ``w`` of the observation noise ``σn² / w``.
     """
-    if weighting not in ("looks", "fit"):
-        raise ValueError(f"weighting must be 'looks' or 'fit', got {weighting!r}")
-    points, y, looks, fit = _voxel_evidence(scans, config, region, weighting == "fit")
-    return points, y, fit if weighting == "fit" else looks
-
-
-def _voxel_evidence(
-    scans: Iterable[Scan], config: MapConfig, region: KeyRegion | None, with_fit: bool
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """:func:`voxel_observations`' points and targets, with both weightings.
-
-    The fit's weights are the looks' where ``with_fit`` is false or the leaves weigh looks.
-    """
-    chord = with_fit and config.free_evidence == "chord"
-    if not chord:  # observe without chord shares: the walk is cheaper
-        looks_only = dataclasses.replace(config.lattice, free_evidence="looks")
-        config = dataclasses.replace(config, lattice=looks_only)
-    obs = observe(scans, config, region)
+    looks = dataclasses.replace(config.lattice, free_evidence="looks")
+    obs = observe(scans, dataclasses.replace(config, lattice=looks), region)
     cap = config.lattice.evidence_cap
     zero = np.zeros(obs.n_voxels, dtype=np.int64)
-    at = np.arange(obs.n_voxels)
-    state = advance(zero, zero, obs, at, cap)
+    state = advance(zero, zero, obs, np.arange(obs.n_voxels), cap)
     hits, frees = effective_counts(state.hits, state.frees, cap, config.clear_scans)
     kept = state.position
     if not np.any(hits) and np.any(obs.hits):  # every return forgotten
@@ -347,16 +325,12 @@ def _voxel_evidence(
     centres = key_to_coord(obs.keys, config.resolution, config.tree_depth)
     occupied = hits > 0
     free = ~occupied & (frees > 0)
-    at_hit = np.where(np.isnan(kept[occupied]), centres[occupied], kept[occupied])
-    points = np.concatenate([at_hit, centres[free]])
+    at = np.where(np.isnan(kept[occupied]), centres[occupied], kept[occupied])
+    points = np.concatenate([at, centres[free]])
     y = np.concatenate([np.ones(int(occupied.sum())), -np.ones(int(free.sum()))])
-    hit_w = hits[occupied].astype(np.float64)
-    looks = np.concatenate([hit_w, config.lattice.free_weight * frees[free]])
-    if not chord:
-        return points, y, looks, looks
-    summed = advance_chord(zero, zero, zero, obs, at)
-    free_in, weight = free_inputs(frees, summed, config)
-    return points, y, looks, np.concatenate([hit_w, weight * free_in[free]])
+    free_weight = config.lattice.free_weight
+    weights = np.concatenate([hits[occupied].astype(np.float64), free_weight * frees[free]])
+    return points, y, weights
 
 
 def voxel_learning_sets(
@@ -450,24 +424,14 @@ def learning_voxel_sets(scans: list[Scan], config: MapConfig) -> list[LearningSe
     Two reads of the scans in regions (:class:`~octolgp.geometry.keys.KeyRegion`), each
     exactly the whole observation there: first the blocks holding a return, which hold
     every occupied voxel, for the seeds and each set's radius; then the balls of those
-    radii around the seeds. The sets are those of every observed voxel (free voxels
-    weighing their looks), while the voxels far from every return and every seed (most
-    of a long beam's) are dropped as they are walked instead of counted.
+    radii around the seeds. The sets are those of every observed voxel, while the
+    voxels far from every return and every seed (most of a long beam's) are dropped as
+    they are walked instead of counted.
 
     Raises
     ------
     OctolgpError
         On scans that observe no voxel or hold no return.
-    """
-    return _learning_voxel_set_pair(scans, config, False)[0]
-
-
-def _learning_voxel_set_pair(
-    scans: list[Scan], config: MapConfig, with_fit: bool
-) -> tuple[list[LearningSet], list[LearningSet]]:
-    """:func:`learning_voxel_sets`, and the same sets weighing free voxels as the leaves do.
-
-    The second list is the first where ``with_fit`` is false or the leaves weigh looks.
     """
     res, depth, dim = config.resolution, config.tree_depth, config.dim
     origins, ends, max_range = stack_beams(check_scans(scans, dim))
@@ -485,12 +449,10 @@ def _learning_voxel_set_pair(
     # a set holds the occupied voxels within ``reach`` of its seed and the free ones
     # whose centres are: a kept return lies within half a voxel diagonal of its centre
     ball = reach + 0.5 * res * np.sqrt(dim)
-    region = KeyRegion.around(seeds, ball, res, depth)
-    points, y, looks, fit = _voxel_evidence(scans, config, region, with_fit)
-    sets = voxel_sets(points, y, looks, seeds, config)
-    if fit is looks:
-        return sets, sets
-    return sets, voxel_sets(points, y, fit, seeds, config)
+    points, y, weights = voxel_observations(
+        scans, config, KeyRegion.around(seeds, ball, res, depth)
+    )
+    return voxel_sets(points, y, weights, seeds, config)
 
 
 def thinned(scans: list[Scan], max_beams: int | None) -> list[Scan]:
@@ -509,24 +471,20 @@ def learn_from_voxels(scans: Iterable[Scan], config: MapConfig) -> Hyperparamete
     """Learn on voxel observations: the kernel by LML on :func:`voxel_learning_sets`, then α, β.
 
     α, β are fitted by LOO on the same sets with the latent LOO variances, as the map
-    applies PLSC to its latent posterior, and with free voxels weighing as the leaves
-    weigh them (with chord shares, not looks), so that they calibrate the latent the
-    map computes.
+    applies PLSC to its latent posterior.
 
     Raises
     ------
     OctolgpError
         On scans that observe no voxel or hold no return.
     """
-    sets, fit_sets = _learning_voxel_set_pair(
-        thinned(list(scans), config.learning.max_beams), config, True
-    )
+    sets = learning_voxel_sets(thinned(list(scans), config.learning.max_beams), config)
     work = BlockWorkspace()
     initial = Hyperparameters(length_scale=10.0 * config.resolution)
     # one start: from a third and three times the initial length scale the optimum is
     # the same to 1e-5 on Intel, FR079 and the lidar room
     ell, sf2, sn2 = fit_kernel(sets, initial, MIN_NOISE_VARIANCE, work, shifts=(0.0,))
-    return _with_plsc(fit_sets, ell, sf2, sn2, config, work, latent=True)
+    return _with_plsc(sets, ell, sf2, sn2, config, work, latent=True)
 
 
 def _no_data() -> OctolgpError:
