@@ -481,7 +481,9 @@ class LatticeConfig:
         3DTK (``tools/bench_3d.py``; the KITTI fixture 2e-4 below) and on Intel and FR079
         (``tools/quality_variants.py``); weights above 0.06 lose on every scene. Lower
         weights gain more AUC but leave a cell at an opened door's frame reading
-        occupied (0.045 already).
+        occupied (0.045 already). With ``free_evidence = "chord"`` (the 3D default) the
+        leaves weigh ``chord_weight`` instead, and ``free_weight`` weighs free looks in
+        hyperparameter learning only.
     free_evidence : {"looks", "chord"} or None
         How much a free voxel weighs in its leaf's GP. ``"looks"``: each
         counted free look weighs ``free_weight``
