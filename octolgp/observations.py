@@ -741,21 +741,20 @@ def observe(
     # the first return per voxel: codes ascend by scan, a stable sort keeps that order
     first = _first_of_each(hit_codes & mask)
     obs = _combine(hit_vox, hit_n, free_vox, free_n, code_points[first], dim)
+    # which free looks count towards forgetting (all of them without forgetting)
+    strong_look = ~sorted_contains(weak_codes, free_codes) if k else None
     chord = None
     if box:
-        strong_look = (
-            ~sorted_contains(weak_codes, free_codes) if k else np.ones(free_codes.size, bool)
-        )
-        chord = _chord_sums(obs, hit_codes, free_codes, shares, strong_look, config)
-    if k:
+        strong_or_all = np.ones(free_codes.size, bool) if strong_look is None else strong_look
+        chord = _chord_sums(obs, hit_codes, free_codes, shares, strong_or_all, config)
+    if strong_look is not None:
         weak = np.zeros(obs.hits.size, dtype=np.int64)
         weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
         obs = dataclasses.replace(obs, weak_frees=weak)
         if len(scan_list) == 1:
             obs = one_scan_summary(obs, k)
         else:
-            strong = free_codes[~sorted_contains(weak_codes, free_codes)]
-            obs = _summarise(obs, hit_codes, code_points, strong, k)
+            obs = _summarise(obs, hit_codes, code_points, free_codes[strong_look], k)
     if chord is not None:
         obs = dataclasses.replace(obs, chord=chord[0], strong_chord=chord[1], tail_chord=chord[2])
     return obs
