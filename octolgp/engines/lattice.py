@@ -124,8 +124,8 @@ class LatticeEvidence:
     @property
     def nbytes(self) -> int:
         """Bytes held by the arrays."""
-        arrays = (self.counts, self.hit_keys, self.hits, self.swept, self.chord)
-        return sum(a.nbytes for a in arrays)
+        arrays = self.counts.nbytes + self.hit_keys.nbytes + self.hits.nbytes
+        return arrays + self.swept.nbytes + self.chord.nbytes
 
 
 def lattice_evidence(leaf: Leaf) -> LatticeEvidence:
