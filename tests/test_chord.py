@@ -255,6 +255,55 @@ def test_chord_shares_round_trip_through_records_and_the_map_file(tmp_path: Path
         assert_same_map(back, whole)
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_records_of_many_leaves_equal_each_leafs(dim: int) -> None:
+    """The batch encoder gives each leaf's record, for leaves keeping chord sums, leaves
+    keeping none, unsized leaves and leaves with swept voxels mixed; a sum at a voxel
+    without a count is refused, as one leaf's encoder refuses it."""
+    from octolgp.engines import engine_for
+    from octolgp.engines.lattice import LatticeEvidence
+    from octolgp.engines.lattice_record import encode_lattice_many
+    from octolgp.mapping.grid import LeafGrid
+
+    if dim == 2:
+        config = _chord2d()
+        scans = [room_scan((x, y)) for x, y in [(-2, -2), (0, 0), (2, 1)]]
+    else:
+        from octolgp.sim.lidar3d import simulate_lidar_room
+
+        room = simulate_lidar_room(2, seed=3, n_azimuth=128, n_elevation=8, max_range=8.0)
+        scans = [s.downsample(0.2) for s in room.scans()]
+        config = MapConfig(dim=3, resolution=0.2).resolve()
+    m = OnlineMap(config)
+    m.insert_batch(scans)
+    codec, grid = engine_for(m.config), LeafGrid.from_config(m.config)
+    leaves = [leaf for _, leaf in m.leaves()]
+    evs = [leaf.evidence for leaf in leaves]
+    assert all(ev.chord.size for ev in evs)  # type: ignore[attr-defined]
+    evs[1] = dataclasses.replace(evs[1], chord=np.zeros(0, np.uint16))  # type: ignore[type-var]
+    evs[2] = LatticeEvidence.empty(dim)
+    n_halo = evs[3].counts.shape[1]  # type: ignore[attr-defined]
+    swept = np.random.default_rng(dim).random(n_halo) < 0.2
+    evs[3] = dataclasses.replace(evs[3], swept=swept)  # type: ignore[type-var]
+    indices = np.stack([leaf.index for leaf in leaves])
+    many = codec.records(evs, indices)
+    assert many == [codec.record(ev, i) for ev, i in zip(evs, indices, strict=True)]
+    ev = evs[0]
+    unseen = np.flatnonzero((ev.counts[0] | ev.counts[1]) == 0)  # type: ignore[attr-defined]
+    bad = ev.chord.copy()  # type: ignore[attr-defined]
+    bad[unseen[0]] = 1
+    with pytest.raises(ValueError, match="zero where none is seen"):
+        encode_lattice_many(
+            [ev.counts],  # type: ignore[attr-defined]
+            [ev.hit_keys],  # type: ignore[attr-defined]
+            [ev.hits],  # type: ignore[attr-defined]
+            indices[:1],
+            grid,
+            None,
+            [bad],
+        )
+
+
 def test_learning_weighs_free_voxels_by_their_looks() -> None:
     """The voxel observations hyperparameters are learnt on are the same with chord
     weights as with looks: each free voxel weighs ``free_weight`` times its counted looks,

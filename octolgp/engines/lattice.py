@@ -1141,10 +1141,8 @@ class LatticeEngine:
         evs = [lattice_evidence_of(ev) for ev in evidence]
         counts = [ev.counts for ev in evs]
         keys, hits = [ev.hit_keys for ev in evs], [ev.hits for ev in evs]
-        swept = [ev.swept for ev in evs]
-        if any(ev.chord.size for ev in evs):  # leaves keeping chord shares one by one
-            return [self.record(ev, i) for ev, i in zip(evs, indices, strict=True)]
-        return encode_lattice_many(counts, keys, hits, indices, self.grid, swept)
+        swept, chord = [ev.swept for ev in evs], [ev.chord for ev in evs]
+        return encode_lattice_many(counts, keys, hits, indices, self.grid, swept, chord)
 
     def from_record(self, blob: bytes, index: IntArray) -> LatticeEvidence:
         """Inverse of :meth:`record`."""

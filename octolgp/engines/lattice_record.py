@@ -29,6 +29,7 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+from numpy.typing import NDArray
 
 from octolgp.errors import OctolgpError
 from octolgp.geometry.keys import pack_keys, return_steps, step_points, unpack_keys
@@ -226,6 +227,7 @@ def encode_lattice_many(
     indices: IntArray,
     grid: LeafGrid,
     swept: list[np.ndarray] | None = None,
+    chord: list[np.ndarray] | None = None,
 ) -> list[bytes]:
     """:func:`encode_lattice` of many leaves at once (the same bytes, leaf by leaf).
 
@@ -241,31 +243,49 @@ def encode_lattice_many(
     grid : LeafGrid
     swept : list of ndarray, optional
         Per leaf, its swept voxels (none where ``None``).
+    chord : list of ndarray, optional
+        Per leaf, its summed chord shares (none where ``None``, or for a leaf, empty).
+
+    Raises
+    ------
+    ValueError
+        If a voxel without a count has chord shares.
     """
     d = grid.dim
     box = grid.side + 2 * grid.halo_voxels
     n_halo = box**d
+    none = np.zeros(0, dtype=np.uint16)
+    sums = [none] * len(counts) if chord is None else chord
     out: list[bytes | None] = [None] * len(counts)
     sweeps = [] if swept is None else [j for j, s in enumerate(swept) if s.size and s.any()]
     if swept is not None and sweeps:  # the few leaves with swept voxels one by one
         rest = sorted(set(range(len(counts))) - set(sweeps))
         pick = [counts[j] for j in rest], [hit_keys[j] for j in rest], [hits[j] for j in rest]
-        for j, blob in zip(rest, encode_lattice_many(*pick, indices[rest], grid), strict=True):
+        blobs = encode_lattice_many(*pick, indices[rest], grid, None, [sums[j] for j in rest])
+        for j, blob in zip(rest, blobs, strict=True):
             out[j] = blob
         for j in sweeps:
-            out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid, swept[j])
+            out[j] = encode_lattice(
+                counts[j], hit_keys[j], hits[j], indices[j], grid, swept[j], sums[j]
+            )
         return [b for b in out if b is not None]
     whole = [j for j, c in enumerate(counts) if c.shape == (2, n_halo)]
     for j in sorted(set(range(len(counts))) - set(whole)):  # unsized leaves, one by one
-        out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid)
+        out[j] = encode_lattice(counts[j], hit_keys[j], hits[j], indices[j], grid, None, sums[j])
     if whole:
         stacked = np.concatenate([counts[j] for j in whole]).reshape(len(whole), 2, n_halo)
         r = np.array([hit_keys[j].size for j in whole], dtype=np.int64)
         keys = unpack_keys(np.concatenate([hit_keys[j] for j in whole]), d)
         points = np.concatenate([np.reshape(hits[j], (-1, d)) for j in whole])
-        for j, blob in zip(
-            whole, _encode_sized(stacked, r, keys, points, indices[whole], grid), strict=True
-        ):
+        kept = np.array([sums[j].size > 0 for j in whole])
+        stacked_sums = None
+        if kept.any():  # zeros for a leaf keeping none: its record gets no sums
+            stacked_sums = np.zeros((len(whole), n_halo), dtype=np.uint16)
+            for row, j in enumerate(whole):  # one iteration per leaf: a row copy
+                if kept[row]:
+                    stacked_sums[row] = sums[j]
+        blobs = _encode_sized(stacked, r, keys, points, indices[whole], grid, stacked_sums, kept)
+        for j, blob in zip(whole, blobs, strict=True):
             out[j] = blob
     return [b for b in out if b is not None]
 
@@ -277,8 +297,13 @@ def _encode_sized(
     points: np.ndarray,
     indices: IntArray,
     grid: LeafGrid,
+    chord: np.ndarray | None = None,
+    kept: NDArray[np.bool_] | None = None,
 ) -> list[bytes]:
-    """Records of leaves with sized counts (L, 2, H); returns concatenated leaf by leaf."""
+    """Records of leaves with sized counts (L, 2, H); returns concatenated leaf by leaf.
+
+    ``chord`` (L, H): the leaves' summed chord shares, written for the leaves ``kept``.
+    """
     n, n_halo = counts.shape[0], counts.shape[2]
     d = grid.dim
     box = grid.side + 2 * grid.halo_voxels
@@ -309,10 +334,17 @@ def _encode_sized(
     flat_u4 = flat.astype("<u4")
     steps_u2 = steps.astype("<u2")
     points_f8 = points.astype("<f8")
+    has_chord = np.zeros(n, dtype=bool) if chord is None or kept is None else kept
+    chord_u2 = np.zeros(0, dtype="<u2")
+    if chord is not None:
+        if np.any(chord[~seen]):
+            raise ValueError("chord shares must be per halo voxel, and zero where none is seen")
+        chord_u2 = chord[seen].astype("<u2")  # leaf by leaf, voxels ascending
     out = []
     for j in range(n):  # one leaf per iteration: slices of the stacked arrays
         a, b, ra, rb = m_at[j], m_at[j + 1], r_at[j], r_at[j + 1]
         flags = (_LISTED if listed[j] else 0) | (_EXACT if exact[j] else 0)
+        flags |= _CHORD if has_chord[j] else 0
         parts = [
             _HEAD.pack(n_halo, rb - ra, flags),
             bitmaps[j].tobytes(),
@@ -325,5 +357,7 @@ def _encode_sized(
             parts.append(points_f8[ra:rb].tobytes())
         else:
             parts.append(np.ascontiguousarray(steps_u2[ra:rb].T).tobytes())
+        if has_chord[j]:
+            parts.append(chord_u2[a:b].tobytes())
         out.append(b"".join(parts))
     return out
