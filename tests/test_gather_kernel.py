@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -100,18 +101,30 @@ def test_advance_equals_the_numpy_rule(dim: int, clear_scans: int) -> None:
 
 
 @pytest.mark.parametrize(
-    ("dim", "clear_scans", "fresh", "free_evidence"),
+    ("dim", "clear_scans", "fresh", "free_evidence", "reopened"),
     [
-        (2, 0, True, "looks"),
-        (2, 2, False, "looks"),
-        (3, 3, True, "looks"),
-        (2, 0, True, "chord"),
-        (3, 3, True, "chord"),
+        (2, 0, True, "looks", False),
+        (2, 2, False, "looks", False),
+        (3, 3, True, "looks", False),
+        (2, 0, True, "chord", False),
+        (3, 3, True, "chord", False),
+        (3, 3, True, "chord", True),
+        (2, 2, True, "looks", True),
     ],
 )
 def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
-    dim: int, clear_scans: int, fresh: bool, free_evidence: str, monkeypatch: pytest.MonkeyPatch
+    dim: int,
+    clear_scans: int,
+    fresh: bool,
+    free_evidence: str,
+    reopened: bool,
+    monkeypatch: pytest.MonkeyPatch,
+    tmp_path: Path,
 ) -> None:
+    """The gather's compiled form (each leaf's buffers read and written where they are)
+    against its numpy form (the rows stacked): the same leaves, evidence and fresh
+    tiles; ``reopened``: the leaves read back from a map file (counts and sums in
+    arrays of their own)."""
 
     hp = Hyperparameters(length_scale=0.5, signal_variance=1.0, noise_variance=0.05, alpha=5.0)
     base = MapConfig(dim=dim, resolution=0.1, hyperparameters=hp)
@@ -124,6 +137,10 @@ def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
     m = OnlineMap(config)
     m.insert_scans(scans[:4])
     m.settle()
+    if reopened:
+        m.save(tmp_path / "m.octolgp")
+        m.close()
+        m = OnlineMap.open(tmp_path / "m.octolgp")
     obs = observe(scans[4:], m.config)
     swept = swept_keys(scans[4:], m.config)
     out = []
@@ -156,46 +173,61 @@ def test_the_gather_with_compiled_loops_equals_the_numpy_gather(
         np.testing.assert_array_equal(a.fresh, b.fresh)
 
 
-@pytest.mark.parametrize("differ", [False, True])
-def test_unit_counts_equal_the_numpy_units(differ: bool) -> None:
-    """The compiled read of each voxel's counts against _voxel_units' numpy form: the same
-    counts for every voxel with copies, and None exactly where copies differ."""
-    if not gather_kernel.AVAILABLE:
-        pytest.skip("numba is not installed")
+@pytest.mark.parametrize("differ", ["none", "counts", "sums"])
+def test_unit_values_read_each_leafs_buffers(differ: str) -> None:
+    """The compiled read of each voxel's counts and sums from the leaves' own buffers
+    (some leaves without counts or sums) against _voxel_units on the stacked rows: the
+    same values for every voxel with copies, and None exactly where copies differ."""
+    from octolgp.engines import leaf_buffers
+
     rng = np.random.default_rng(7)
     n, n_halo, n_leaves = 300, 50, 40
     counts = rng.integers(0, 6, (n_leaves, 2, n_halo)).astype(np.uint8)
+    sums = rng.integers(0, 65535, (n_leaves, n_halo)).astype(np.uint16)
+    no_counts, no_sums = [3, 17], [5, 17, 30]  # leaves without them: zero
     voxel = np.sort(rng.integers(0, n, 700))  # some voxels without a copy
     slot = rng.permutation(n_leaves * n_halo)[: voxel.size]  # each copy its own place
-    leaf, flat = slot // n_halo, slot % n_halo
-    at_h = leaf * (2 * n_halo) + flat
+    inverse, flat = slot // n_halo, slot % n_halo
     first = np.r_[0, np.flatnonzero(np.diff(voxel)) + 1]  # each voxel's first copy
     owner = np.repeat(first, np.diff(np.r_[first, voxel.size]))
-    flat_counts = counts.reshape(-1)
-    flat_counts[at_h] = flat_counts[at_h[owner]]  # every copy holds its voxel's counts
-    flat_counts[at_h + n_halo] = flat_counts[at_h[owner] + n_halo]
-    if differ:  # one copy of a voxel with several copies disagrees
-        i = int(np.flatnonzero(owner != np.arange(voxel.size))[0])
-        flat_counts[at_h[i]] += 1
-    before_h = flat_counts[at_h].astype(np.int64)
-    before_f = flat_counts[at_h + n_halo].astype(np.int64)
-    unit, _, h, f = _voxel_units(before_h, before_f, voxel, n)
-    got = gather_kernel.unit_counts(voxel, at_h, n_halo, flat_counts, n)
-    assert (got is None) == differ == (unit is None)
+    counts[inverse, 0, flat] = counts[inverse[owner], 0, flat[owner]]
+    counts[inverse, 1, flat] = counts[inverse[owner], 1, flat[owner]]
+    sums[inverse, flat] = sums[inverse[owner], flat[owner]]
+    # a voxel with a copy in a leaf without counts (sums) holds none in every copy
+    for missing, values in ((no_counts, counts[:, 0]), (no_counts, counts[:, 1]), (no_sums, sums)):
+        bare = np.isin(voxel, voxel[np.isin(inverse, missing)])
+        values[inverse[bare], flat[bare]] = 0
+    if differ != "none":  # one copy of a voxel with several copies disagrees
+        bare = np.isin(voxel, voxel[np.isin(inverse, no_counts + no_sums)])
+        i = int(np.flatnonzero((owner != np.arange(voxel.size)) & ~bare)[0])
+        if differ == "counts":
+            counts[inverse[i], 1, flat[i]] += 1
+        else:
+            sums[inverse[i], flat[i]] ^= 1
+    leaf_counts = [None if j in no_counts else counts[j].copy() for j in range(n_leaves)]
+    leaf_sums = [None if j in no_sums else sums[j].copy() for j in range(n_leaves)]
+    sources = leaf_buffers.addresses(leaf_counts), leaf_buffers.addresses(leaf_sums)
+    got = leaf_buffers.unit_values(voxel, inverse, flat, n_halo, *sources, n)
+    h_p, f_p = counts[inverse, 0, flat].astype(np.int64), counts[inverse, 1, flat].astype(np.int64)
+    w_p = sums[inverse, flat].astype(np.int64)
+    unit, _, h, f = _voxel_units(h_p, f_p, voxel, n)
+    w_unit, _, w, _ = _voxel_units(w_p, w_p, voxel, n)
+    assert (got is None) == (differ != "none") == (unit is None or w_unit is None)
     if got is not None:
-        held = np.unique(voxel)
-        np.testing.assert_array_equal(got[0][held], h[held])
-        np.testing.assert_array_equal(got[1][held], f[held])
-        assert not got[0][np.setdiff1d(np.arange(n), held)].any()
+        held_voxels = np.unique(voxel)
+        for a, b in zip(got, (h, f, w), strict=True):
+            np.testing.assert_array_equal(a[held_voxels], b[held_voxels])
+            assert not a[np.setdiff1d(np.arange(n), held_voxels)].any()
 
 
-@pytest.mark.parametrize("differ", [False, True])
 @pytest.mark.parametrize("clear_scans", [0, 3])
 @pytest.mark.parametrize("n_scans", [1, 3])
-def test_chord_units_equal_the_numpy_form(differ: bool, clear_scans: int, n_scans: int) -> None:
-    """The compiled chord step against its numpy form: the same sums written to every
-    pair, the same leaves refitted and stored, the same pairs whose input moved; and
-    nothing written where a voxel's copies hold different sums."""
+def test_chord_rule_and_flags_equal_the_numpy_form(clear_scans: int, n_scans: int) -> None:
+    """The compiled chord step (the rule per voxel, the leaves' flags per pair, the new
+    sums written to each pair's leaf) against its numpy form: the same sums, the same
+    leaves refitted and stored, the same pairs whose input moved."""
+    from octolgp.engines import leaf_buffers
+
     config = MapConfig(
         dim=2,
         resolution=0.1,
@@ -216,39 +248,33 @@ def test_chord_units_equal_the_numpy_form(differ: bool, clear_scans: int, n_scan
     owner = np.repeat(first, np.diff(np.r_[first, voxel.size]))
     flat_chord = chord.reshape(-1)
     flat_chord[at_w] = flat_chord[at_w[owner]]  # every copy holds its voxel's sum
-    if differ:  # one copy of a voxel with several copies disagrees
-        i = int(np.flatnonzero(owner != np.arange(voxel.size))[0])
-        flat_chord[at_w[i]] ^= 1
     ef0 = rng.integers(0, 2, n) * rng.integers(1, 4, n)
     ef1 = rng.integers(0, 2, n) * rng.integers(1, 4, n)
     counts0 = rng.integers(0, 2, n), rng.integers(0, max(clear_scans, 1) + 1, n)
     refit = rng.random(n_leaves) < 0.1  # leaves the counts already change
     new_counts = refit | (rng.random(n_leaves) < 0.1)
-    out = []
-    for compiled in (True, False):
-        sums = flat_chord.copy()
-        marks = refit.copy(), new_counts.copy()
-        if compiled:
-            moved = gather_kernel.chord_units(
-                voxel, inverse, flat, n_halo, 0, sums, obs, counts0, (ef0, ef1), *marks
-            )
-            if differ:  # the numpy form serves, nothing written
-                assert moved is None
-                np.testing.assert_array_equal(sums, flat_chord)
-                np.testing.assert_array_equal(marks[0], refit)
-                np.testing.assert_array_equal(marks[1], new_counts)
-                continue
-        else:
-            unit = voxel
-            moved = _advance_chord_pairs(
-                voxel, at_w, inverse, sums, obs, unit, counts0, (ef0, ef1), *marks
-            )
-        assert moved is not None
-        out.append((sums, marks[0], marks[1], moved, refit, new_counts))
-    if not differ:
-        (a, *rest_a), (b, *rest_b) = out
-        np.testing.assert_array_equal(a, b)
-        for x, y in zip(rest_a, rest_b, strict=True):
-            np.testing.assert_array_equal(x, y)
-        assert out[0][3].any()
-        assert not np.array_equal(out[0][0], flat_chord)
+    # numpy
+    want_sums = flat_chord.copy()
+    want_refit, want_new = refit.copy(), new_counts.copy()
+    want_moved = _advance_chord_pairs(
+        voxel, at_w, inverse, want_sums, obs, voxel, counts0, (ef0, ef1), want_refit, want_new
+    )
+    # compiled: each voxel's sum once, the flags, then the sums into each leaf's copy
+    w0 = np.zeros(n, dtype=np.int64)
+    w0[voxel] = flat_chord[at_w]
+    w1, flag = gather_kernel.chord_rule(obs, w0, counts0, (ef0, ef1))
+    none = np.zeros(n, dtype=bool)
+    got_refit, got_new, gained, got_moved = gather_kernel.leaf_flags(
+        voxel, inverse, (none, none, none, none), flag, n_leaves
+    )
+    assert gained == 0
+    buffers = [chord[j].copy() for j in range(n_leaves)]
+    at = leaf_buffers.addresses(buffers)
+    zero = np.zeros(n, dtype=np.int64)
+    leaf_buffers.write_pairs(voxel, inverse, flat, n_halo, np.zeros_like(at), at, zero, zero, w1)
+    np.testing.assert_array_equal(np.stack(buffers).reshape(-1), want_sums)
+    np.testing.assert_array_equal(got_refit | refit, want_refit)
+    np.testing.assert_array_equal(got_new | new_counts, want_new)
+    np.testing.assert_array_equal(got_moved, want_moved)
+    assert got_moved.any()
+    assert not np.array_equal(want_sums, flat_chord)

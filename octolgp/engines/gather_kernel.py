@@ -6,7 +6,9 @@ the scans' observations (:func:`octolgp.observations.advance`). Their numpy form
 dozen passes over arrays the size of every (voxel, leaf) pair, and for a scan that touches
 a few hundred leaves the passes' fixed costs dominate. These loops make one pass each,
 give the same arrays in the same order (``tests/test_gather_kernel.py``), and serve where
-numba is installed (:data:`AVAILABLE`); the numpy forms serve otherwise.
+numba is installed (:data:`AVAILABLE`); the numpy forms serve otherwise. The stored
+counts themselves are read and written in the leaves' own buffers
+(:mod:`octolgp.engines.leaf_buffers`).
 """
 
 from __future__ import annotations
@@ -27,11 +29,41 @@ AVAILABLE = importlib.util.find_spec("numba") is not None
 IntArray = NDArray[np.int64]
 
 
-def _pairs(
+def _pair_masks(
+    cols: IntArray, shift: int, halo: int, n_leaf: int, mask: NDArray[np.uint8], cursor: IntArray
+) -> None:  # pragma: no cover - compiled; tested through the compiled form
+    """Each voxel's offsets whose leaf holds it, as bits of ``mask``; counts into ``cursor``.
+
+    Offset ``o`` (``itertools.product((0, 1), repeat=dim)`` order) takes the upper leaf
+    along the axes whose bit is set; ``cursor[o + 1]`` gains one per voxel it holds. The
+    leaf's edge is ``1 << shift`` voxels (floor division by it is an arithmetic shift).
+    """
+    dim, n = cols.shape
+    n_off = 1 << dim
+    for v in range(n):
+        ok_lo = 0
+        ok_hi = 0
+        for a in range(dim):
+            c = cols[a, v]
+            q = (c - halo) >> shift  # the lower leaf along the axis
+            bit = 1 << (dim - 1 - a)
+            if q >= 0 and q < n_leaf:
+                ok_lo |= bit
+            if ((c + halo) >> shift) > q and q + 1 < n_leaf:
+                ok_hi |= bit
+        m = 0
+        for o in range(n_off):
+            if not (o & ~ok_hi or (o ^ (n_off - 1)) & ~ok_lo):  # the offset's leaf holds it
+                m |= 1 << o
+                cursor[o + 1] += 1
+        mask[v] = m
+
+
+def _pair_list(
     cols: IntArray,
     shift: int,
     halo: int,
-    n_leaf: int,
+    mask: NDArray[np.uint8],
     origin: IntArray,
     stride: IntArray,
     cursor: IntArray,
@@ -39,48 +71,46 @@ def _pairs(
     leaf_key: IntArray,
     flat: IntArray,
     cell: IntArray,
-    count_only: bool,
 ) -> None:  # pragma: no cover - compiled; tested through the compiled form
-    """Count the (voxel, leaf) pairs per offset into ``cursor``, or list them from it.
+    """List the pairs of :func:`_pair_masks`' offsets, each at ``cursor[o]`` (advanced).
 
-    ``cursor[o]``: where the pairs of offset ``o`` (``itertools.product((0, 1),
-    repeat=dim)`` order) start in the output; counting adds each offset's count to
-    ``cursor[o + 1]``. The leaf's edge is ``1 << shift`` voxels (floor division by it is
-    an arithmetic shift).
+    Per voxel the lower leaf's key, cell and flat index are worked out once per axis;
+    the upper leaf along an axis is one key step and one cell stride on, and ``side``
+    voxels lower in its halo box.
     """
     dim, n = cols.shape
     side = 1 << shift
     box = side + 2 * halo
     n_off = 1 << dim
-    lower = np.empty(dim, dtype=np.int64)
     for v in range(n):
-        ok_lo = 0
-        ok_hi = 0
-        for a in range(dim):
+        m = mask[v]
+        if m == 0:
+            continue
+        packed0 = 0
+        cell0 = 0
+        flat0 = 0
+        scale = 1
+        for a in range(dim):  # the lower leaf along every axis
             c = cols[a, v]
-            q = (c - halo) >> shift  # the lower leaf along the axis
-            lower[a] = q
-            if q >= 0 and q < n_leaf:
-                ok_lo |= 1 << (dim - 1 - a)
-            if ((c + halo) >> shift) > q and q + 1 < n_leaf:
-                ok_hi |= 1 << (dim - 1 - a)
-        for o in range(n_off):  # offset o takes the upper leaf where its bit is set
-            if o & ~ok_hi or (o ^ (n_off - 1)) & ~ok_lo:  # a leaf that does not hold it
-                continue
-            if count_only:
-                cursor[o + 1] += 1
+            q = (c - halo) >> shift
+            packed0 += q << (KEY_BITS * a)  # a sum: q may be -1 where only the upper holds it
+            cell0 += (q - origin[a]) * stride[a]
+            flat0 += (c - (q * side - halo)) * scale
+            scale *= box
+        for o in range(n_off):
+            if not (m >> o) & 1:
                 continue
             k = cursor[o]
             cursor[o] += 1
-            packed = 0
-            at_cell = 0
-            at_flat = 0
+            packed = packed0
+            at_cell = cell0
+            at_flat = flat0
             scale = 1
             for a in range(dim):
-                leaf = lower[a] + ((o >> (dim - 1 - a)) & 1)
-                packed |= leaf << (KEY_BITS * a)
-                at_cell += (leaf - origin[a]) * stride[a]
-                at_flat += (cols[a, v] - (leaf * side - halo)) * scale
+                if (o >> (dim - 1 - a)) & 1:  # the upper leaf along the axis
+                    packed += 1 << (KEY_BITS * a)
+                    at_cell += stride[a]
+                    at_flat -= side * scale
                 scale *= box
             voxel[k] = v
             leaf_key[k] = packed
@@ -162,66 +192,39 @@ def _advance(
                 position[i, a] = np.nan
 
 
-def _scatter(
+def _leaf_flags(
     unit: IntArray,
-    at_h: IntArray,
     inverse: IntArray,
-    n_halo: int,
-    hits: IntArray,
-    frees: IntArray,
     effective: NDArray[np.bool_],
     stored: NDArray[np.bool_],
     d_h: NDArray[np.bool_],
     d_f: NDArray[np.bool_],
-    flat_counts: NDArray[np.uint8],
+    chord_flag: NDArray[np.uint8],
     refit: NDArray[np.bool_],
     new_counts: NDArray[np.bool_],
+    moved: NDArray[np.bool_],
 ) -> int:  # pragma: no cover - compiled; tested through the compiled form
-    """Each pair's unit's new counts into the stacked counts; the leaves that change."""
+    """The leaves whose GP input or stored evidence moves, from their pairs' units."""
     gained = 0
     for i in range(unit.size):
         u = unit[i]
-        flat_counts[at_h[i]] = hits[u]
-        flat_counts[at_h[i] + n_halo] = frees[u]
+        j = inverse[i]
         if effective[u]:
-            refit[inverse[i]] = True
+            refit[j] = True
         if stored[u]:
-            new_counts[inverse[i]] = True
+            new_counts[j] = True
+        if chord_flag[u] & 1:
+            refit[j] = True
+            new_counts[j] = True
+            moved[i] = True
+        elif chord_flag[u] & 2:
+            new_counts[j] = True
         gained += d_h[u] + d_f[u]
     return gained
 
 
-def _unit_counts(
-    voxel: IntArray,
-    at_h: IntArray,
-    n_halo: int,
-    flat_counts: NDArray[np.uint8],
-    h0: IntArray,
-    f0: IntArray,
-    seen: NDArray[np.bool_],
-) -> bool:  # pragma: no cover - compiled; tested through the compiled form
-    """Each voxel's counts from its pairs into ``h0``, ``f0``; False where copies differ."""
-    for i in range(voxel.size):
-        v = voxel[i]
-        h = flat_counts[at_h[i]]
-        f = flat_counts[at_h[i] + n_halo]
-        if seen[v]:
-            if h0[v] != h or f0[v] != f:
-                return False
-        else:
-            seen[v] = True
-            h0[v] = h
-            f0[v] = f
-    return True
-
-
-def _chord_units(
-    voxel: IntArray,
-    inverse: IntArray,
-    flat: IntArray,
-    row: int,
-    offset: int,
-    flat_chord: NDArray[np.uint16],
+def _chord_rule(
+    w0: IntArray,
     chord: IntArray,
     strong_chord: IntArray,
     tail_chord: IntArray,
@@ -231,32 +234,16 @@ def _chord_units(
     frees0: IntArray,
     free0: IntArray,
     free1: IntArray,
-    w0: IntArray,
-    seen: NDArray[np.bool_],
-    refit: NDArray[np.bool_],
-    new_counts: NDArray[np.bool_],
-    moved: NDArray[np.bool_],
-) -> bool:  # pragma: no cover - compiled; tested through the compiled form
-    """Advance each voxel's summed chord shares once and write them to its pairs.
+    w1: IntArray,
+    flag: NDArray[np.uint8],
+) -> None:  # pragma: no cover - compiled; tested through the compiled form
+    """The rule of :func:`octolgp.observations.advance_chord` per voxel, then what moved.
 
-    False, and nothing written, where two copies of a voxel hold different sums.
+    ``flag``: bit 0 where the GP input moved (the sum of a voxel with a positive
+    effective free count), bit 1 where the stored sum did.
     """
-    for i in range(voxel.size):  # each voxel's sum, read once from its copies
-        v = voxel[i]
-        w = flat_chord[inverse[i] * row + offset + flat[i]]
-        if seen[v]:
-            if w0[v] != w:
-                return False
-        else:
-            seen[v] = True
-            w0[v] = w
-    n = w0.size
     looks = chord.shape[1]
-    w1 = np.empty(n, dtype=np.int64)
-    flag = np.zeros(n, dtype=np.uint8)  # bit 0: the GP input moved, bit 1: the sum
-    for v in range(n):  # the rule of advance_chord, then what moved
-        if not seen[v]:
-            continue
+    for v in range(w0.size):
         before = w0[v]
         left = min(looks - frees0[v], looks)  # looks the free count still counts
         if clear_scans and obs_hits[v] > 0:
@@ -273,34 +260,24 @@ def _chord_units(
             flag[v] = 3
         elif w != before:
             flag[v] = 2
-    for i in range(voxel.size):  # each pair's new sum; the leaves that change
-        v = voxel[i]
-        flat_chord[inverse[i] * row + offset + flat[i]] = w1[v]
-        if flag[v] & 1:
-            refit[inverse[i]] = True
-            moved[i] = True
-        if flag[v] & 2:
-            new_counts[inverse[i]] = True
-    return True
 
 
 @functools.cache
 def _compiled() -> tuple[
-    Callable[..., None],
+    tuple[Callable[..., None], Callable[..., None]],
     Callable[..., None],
     Callable[..., int],
-    Callable[..., bool],
-    Callable[..., bool],
+    Callable[..., None],
 ]:
     """The loops compiled by numba (cached on disk beside the module after the first run)."""
     from numba import njit
 
-    pairs: Callable[..., None] = njit(cache=True, nogil=True)(_pairs)
+    masks: Callable[..., None] = njit(cache=True, nogil=True)(_pair_masks)
+    listing: Callable[..., None] = njit(cache=True, nogil=True)(_pair_list)
     rule: Callable[..., None] = njit(cache=True, nogil=True)(_advance)
-    scatter: Callable[..., int] = njit(cache=True, nogil=True)(_scatter)
-    units: Callable[..., bool] = njit(cache=True, nogil=True)(_unit_counts)
-    chord: Callable[..., bool] = njit(cache=True, nogil=True)(_chord_units)
-    return pairs, rule, scatter, units, chord
+    flags: Callable[..., int] = njit(cache=True, nogil=True)(_leaf_flags)
+    chord: Callable[..., None] = njit(cache=True, nogil=True)(_chord_rule)
+    return (masks, listing), rule, flags, chord
 
 
 def halo_pairs(
@@ -345,15 +322,15 @@ def halo_pairs(
         origin, extent = (0,) * d, (1,) * d
     stride = np.cumprod((1, *extent[:-1])).astype(np.int64)
     at = np.asarray(origin, dtype=np.int64)
-    pairs = _compiled()[0]
+    masks, listing = _compiled()[0]
     shift = side.bit_length() - 1
     cursor = np.zeros((1 << d) + 1, dtype=np.int64)
-    none = np.zeros(0, dtype=np.int64)
-    pairs(cols, shift, halo, n_leaf, at, stride, cursor, none, none, none, none, True)
+    mask = np.empty(keys.shape[0], dtype=np.uint8)
+    masks(cols, shift, halo, n_leaf, mask, cursor)
     cursor = np.cumsum(cursor)
     n = int(cursor[-1])
     out = [np.empty(n, dtype=np.int64) for _ in range(4)]
-    pairs(cols, shift, halo, n_leaf, at, stride, cursor, *out, False)
+    listing(cols, shift, halo, mask, at, stride, cursor, *out)
     return out[0], out[1], out[2], out[3], origin, extent
 
 
@@ -398,43 +375,35 @@ def advance(
     return VoxelState(h, f, position, replace, drop)
 
 
-def scatter_units(
+def leaf_flags(
     unit: IntArray,
-    at_h: IntArray,
     inverse: IntArray,
-    n_halo: int,
-    state: VoxelState,
-    effective: NDArray[np.bool_],
-    stored: NDArray[np.bool_],
-    d_h: NDArray[np.bool_],
-    d_f: NDArray[np.bool_],
-    flat_counts: NDArray[np.uint8],
+    state: tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]],
+    chord_flag: NDArray[np.uint8] | None,
     n_touched: int,
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_], int]:
-    """Write each (voxel, leaf) pair's new counts; which leaves change, and the inputs gained.
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], int, NDArray[np.bool_]]:
+    """Which leaves change, from what changes per unit, in one pass over the pairs.
 
     Parameters
     ----------
-    unit, at_h, inverse : ndarray of int64, shape (p,)
-        Per pair: its unit (the voxel whose state it shares), its return count's index
-        in ``flat_counts`` (the free count's is ``n_halo`` further) and its leaf among
-        the ``n_touched`` touched ones.
-    n_halo : int
-    state : VoxelState
-        Per unit, the new counts.
-    effective, stored, d_h, d_f : ndarray of bool, shape (units,)
-        Per unit: what its leaf GP sees moved; its stored counts moved; its effective
-        return / free count moved.
-    flat_counts : ndarray of uint8
-        The touched leaves' stacked counts, flat; written in place.
+    unit, inverse : ndarray of int64, shape (p,)
+        Per (voxel, leaf) pair: its unit (the voxel whose state it shares) and its leaf
+        among the touched ones.
+    state : tuple of ndarray of bool, shape (units,) each
+        Per unit: what its leaf GP sees moved (``effective``); its stored counts moved
+        (``stored``); its effective return / free count moved (``d_h``, ``d_f``).
+    chord_flag : ndarray of uint8, shape (units,), or None
+        :func:`chord_rule`'s flags (``None``: no sums kept).
     n_touched : int
 
     Returns
     -------
     refit, new_counts : ndarray of bool, shape (n_touched,)
-        The leaves holding a pair whose unit is ``effective`` / ``stored``.
+        The leaves holding a pair whose GP input / stored evidence moved.
     gained : int
         Pairs whose effective return count moved plus those whose free count did.
+    moved : ndarray of bool, shape (p,)
+        The pairs whose summed chord shares, as the GP sees them, moved.
 
     Raises
     ------
@@ -443,110 +412,44 @@ def scatter_units(
     """
     if not AVAILABLE:
         raise RuntimeError("the compiled gather needs numba")
+    effective, stored, d_h, d_f = state
     refit = np.zeros(n_touched, dtype=bool)
     new_counts = np.zeros(n_touched, dtype=bool)
-    scatter = _compiled()[2]
-    gained = scatter(
-        unit,
-        at_h,
-        inverse,
-        n_halo,
-        state.hits,
-        state.frees,
-        effective,
-        stored,
-        d_h,
-        d_f,
-        flat_counts,
-        refit,
-        new_counts,
-    )
-    return refit, new_counts, int(gained)
+    moved = np.zeros(unit.size, dtype=bool)
+    if chord_flag is None:
+        chord_flag = np.zeros(effective.size, dtype=np.uint8)
+    flags = _compiled()[2]
+    gained = flags(unit, inverse, effective, stored, d_h, d_f, chord_flag, refit, new_counts, moved)
+    return refit, new_counts, int(gained), moved
 
 
-def unit_counts(
-    voxel: IntArray, at_h: IntArray, n_halo: int, flat_counts: NDArray[np.uint8], n: int
-) -> tuple[IntArray, IntArray] | None:
-    """Each observed voxel's stored counts, read once from its (voxel, leaf) copies.
-
-    Parameters
-    ----------
-    voxel, at_h : ndarray of int64, shape (p,)
-        Per pair: its voxel, in ``[0, n)``, and its return count's index in
-        ``flat_counts`` (the free count's is ``n_halo`` further).
-    n_halo : int
-    flat_counts : ndarray of uint8
-        The touched leaves' stacked counts, flat.
-    n : int
-        Observed voxels.
-
-    Returns
-    -------
-    tuple of ndarray of int64, shape (n,), or None
-        The return and free counts of each voxel (0 for a voxel without copies);
-        ``None`` when two copies of a voxel differ (each copy is then a unit of its own).
-
-    Raises
-    ------
-    RuntimeError
-        If numba is not available.
-    """
-    if not AVAILABLE:
-        raise RuntimeError("the compiled gather needs numba")
-    h0 = np.zeros(n, dtype=np.int64)
-    f0 = np.zeros(n, dtype=np.int64)
-    seen = np.zeros(n, dtype=bool)
-    agree = _compiled()[3](voxel, at_h, n_halo, flat_counts, h0, f0, seen)
-    return (h0, f0) if agree else None
-
-
-def chord_units(
-    voxel: IntArray,
-    inverse: IntArray,
-    flat: IntArray,
-    row: int,
-    offset: int,
-    flat_chord: NDArray[np.uint16],
+def chord_rule(
     obs: VoxelObservations,
+    w0: IntArray,
     counts0: tuple[NDArray[np.integer], NDArray[np.integer]],
     free01: tuple[NDArray[np.integer], NDArray[np.integer]],
-    refit: NDArray[np.bool_],
-    new_counts: NDArray[np.bool_],
-) -> NDArray[np.bool_] | None:
-    """Advance the summed chord shares once per voxel and write them to its copies.
-
-    The chord part of :func:`octolgp.engines.lattice.gather_observations` where the
-    copies of each voxel agree: each voxel's sum read once from its (voxel, leaf) pairs,
-    advanced by :func:`octolgp.observations.advance_chord`, and written back to each
-    pair.
+) -> tuple[IntArray, NDArray[np.uint8]]:
+    """Advance each voxel's summed chord shares once (:func:`~octolgp.observations.advance_chord`).
 
     Parameters
     ----------
-    voxel, inverse, flat : ndarray of int64, shape (p,)
-        Per pair: its voxel, in ``[0, n)`` (``n = obs.n_voxels``), its leaf among the
-        touched ones and its flat index in the leaf's halo box.
-    row, offset : int
-        The touched leaves' rows in ``flat_chord``, and where in a row the sums start:
-        a pair's sum is at ``inverse * row + offset + flat``.
-    flat_chord : ndarray of uint16
-        The touched leaves' stacked rows, flat; written in place (only where the
-        copies agree).
     obs : VoxelObservations
         The step's observations, with chord shares.
+    w0 : ndarray of int64, shape (n,)
+        Each voxel's stored sum before the step (``n = obs.n_voxels``).
     counts0 : tuple of ndarray of int, shape (n,) each
         Each voxel's stored return and free counts before the step (which looks its
         free count still counts).
     free01 : tuple of ndarray of int, shape (n,) each
         Each voxel's effective free count before and after the step: a sum is the GP's
         input where the count is positive.
-    refit, new_counts : ndarray of bool, shape (touched,)
-        Set in place for the leaves holding a pair whose GP input / stored sum moved.
 
     Returns
     -------
-    ndarray of bool, shape (p,), or None
-        The pairs whose GP input moved; ``None`` (nothing written or set) when two
-        copies of a voxel hold different sums.
+    w1 : ndarray of int64, shape (n,)
+        The new sums.
+    flag : ndarray of uint8, shape (n,)
+        Bit 0 where the sum as the GP sees it moved, bit 1 where the stored sum did.
 
     Raises
     ------
@@ -561,14 +464,10 @@ def chord_units(
         raise ValueError("the observations hold no chord shares")
     n = obs.n_voxels
     c = np.ascontiguousarray
-    moved = np.zeros(voxel.size, dtype=bool)
-    agree = _compiled()[4](
-        voxel,
-        inverse,
-        flat,
-        int(row),
-        int(offset),
-        flat_chord,
+    w1 = np.zeros(n, dtype=np.int64)
+    flag = np.zeros(n, dtype=np.uint8)
+    _compiled()[3](
+        c(w0, dtype=np.int64),
         np.asarray(obs.chord, dtype=np.int64),  # one scan's: columns of stride 0
         np.asarray(obs.strong_chord, dtype=np.int64),
         c(obs.tail_chord, dtype=np.int64),
@@ -578,10 +477,7 @@ def chord_units(
         c(counts0[1], dtype=np.int64),
         c(free01[0], dtype=np.int64),
         c(free01[1], dtype=np.int64),
-        np.zeros(n, dtype=np.int64),
-        np.zeros(n, dtype=bool),
-        refit,
-        new_counts,
-        moved,
+        w1,
+        flag,
     )
-    return moved if agree else None
+    return w1, flag

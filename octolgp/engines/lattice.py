@@ -324,36 +324,144 @@ def _stored_rows(leaves: list[Leaf | None], n_halo: int, chord: bool) -> NDArray
     counts' bytes (``2 * n_halo``: :attr:`LatticeEvidence.counts` flat) and, with
     ``chord``, then the sums' (``n_halo`` uint16, native order: the row's second half
     viewed as uint16 is :attr:`LatticeEvidence.chord`). A leaf whose counts and sums are
-    the two halves of one buffer (:func:`_own_rows` gives them so) is read in one copy.
+    the two halves of one buffer (:func:`_own_rows` gives them so) gives that buffer
+    as its row; the rows are joined in one copy.
 
     Returns
     -------
     ndarray of uint8, shape (len(leaves), 2 * n_halo) or (len(leaves), 4 * n_halo)
     """
     width = (4 if chord else 2) * n_halo
-    out = np.empty((len(leaves), width), dtype=np.uint8)  # each row written once
-    evidence = evidence_of([leaf for leaf in leaves if leaf is not None])
-    if len(evidence) < len(leaves):  # new leaves: zero
-        out[[j for j, leaf in enumerate(leaves) if leaf is None]] = 0
-    rows = [j for j, leaf in enumerate(leaves) if leaf is not None]
-    if not chord:
-        counts_of = out.reshape(len(leaves), 2, n_halo)
-        for j, ev in zip(rows, evidence, strict=True):  # straight into place: no stacked copy
-            if ev.counts.shape[1] == n_halo:
-                counts_of[j] = ev.counts
-            else:
-                counts_of[j] = 0
-        return out
-    sums_of = out.view(np.uint16)[:, n_halo:]
-    for j, ev in zip(rows, evidence, strict=True):
-        c, w = ev.counts, ev.chord
-        whole = w.base
-        if whole is not None and c.base is whole and whole.nbytes == width:  # one buffer
-            out[j] = whole
+    if not leaves:
+        return np.zeros((0, width), dtype=np.uint8)
+    evidence = iter(evidence_of([leaf for leaf in leaves if leaf is not None]))
+    if chord:
+        zero = np.zeros(width, dtype=np.uint8)
+        rows = [zero if leaf is None else _chord_row(next(evidence), zero) for leaf in leaves]
+    else:  # the counts as they are, (2, n_halo) each
+        zero = np.zeros((2, n_halo), dtype=np.uint8)
+        rows = [
+            zero if leaf is None or (c := next(evidence).counts).shape[1] != n_halo else c
+            for leaf in leaves
+        ]
+    return np.concatenate(rows).reshape(len(leaves), width)
+
+
+def _chord_row(
+    ev: LatticeEvidence, zero: NDArray[np.uint8], own: bool = False
+) -> NDArray[np.uint8]:
+    """A leaf's row of counts and sums (``zero``: a zero row, its width): one buffer or built.
+
+    ``own``: a copy of the leaf's one buffer, never the buffer itself.
+    """
+    c, w = ev.counts, ev.chord
+    whole = _one_buffer(ev, zero.size)
+    if whole is not None:
+        return whole.copy() if own else whole
+    n_halo = zero.size // 4
+    row = zero.copy()
+    if c.shape[1] == n_halo:
+        row[: 2 * n_halo] = c.reshape(-1)
+    if w.size == n_halo:
+        row[2 * n_halo :] = w.view(np.uint8)
+    return row
+
+
+def _one_buffer(ev: LatticeEvidence, width: int) -> NDArray[np.uint8] | None:
+    """The buffer of ``width`` bytes whose halves are the leaf's counts and sums, if one is."""
+    whole = ev.chord.base
+    if isinstance(whole, np.ndarray) and ev.counts.base is whole and whole.nbytes == width:
+        return whole
+    return None
+
+
+def _leaf_sources(
+    leaves: list[Leaf | None], n_halo: int, chord: bool
+) -> tuple[IntArray, IntArray] | None:
+    """The addresses of the leaves' counts and sums, for the compiled gather to read.
+
+    0 where a leaf has none (new, counts not yet sized, sums not kept). ``None`` where a
+    leaf's arrays are not C-contiguous uint8 / uint16 (the numpy gather then serves).
+    """
+    from octolgp.engines import leaf_buffers  # imports numba
+
+    counts: list[np.ndarray | None] = []
+    sums: list[np.ndarray | None] = []
+    for ev in (None if leaf is None else leaf.evidence for leaf in leaves):  # one per leaf
+        if ev is None:
+            counts.append(None)
+            sums.append(None)
             continue
-        out[j, : 2 * n_halo] = c.reshape(-1) if c.shape[1] == n_halo else 0
-        sums_of[j] = w if w.size == n_halo else 0
-    return out
+        ev = lattice_evidence_of(ev)
+        c, w = ev.counts, ev.chord
+        if c.shape[1] == n_halo:
+            if c.dtype != np.uint8 or not c.flags.c_contiguous:
+                return None
+            counts.append(c)
+        else:
+            counts.append(None)
+        if chord and w.size == n_halo:
+            if w.dtype != np.uint16 or not w.flags.c_contiguous:
+                return None
+            sums.append(w)
+        else:
+            sums.append(None)
+    return leaf_buffers.addresses(counts), leaf_buffers.addresses(sums)
+
+
+def _new_buffers(
+    leaves: list[Leaf | None], new_counts: NDArray[np.bool_], n_halo: int, chord: bool
+) -> tuple[list[tuple[NDArray[np.uint8], NDArray[np.uint16] | None]], tuple[IntArray, IntArray]]:
+    """Fresh buffers for the leaves with new counts: their stored ones copied, or zero.
+
+    Returns
+    -------
+    own : list of (counts, sums)
+        Per leaf with new counts (ascending): its counts, shape ``(2, n_halo)``, and
+        with ``chord`` its sums, the two halves of one buffer of its own (sums ``None``
+        without ``chord``), as :func:`_own_rows` gives them.
+    targets : tuple of ndarray of int64, shape (len(leaves),) each
+        Each leaf's new counts' and sums' addresses (0: a leaf left as it is), for
+        :func:`octolgp.engines.leaf_buffers.write_pairs`.
+    """
+    from octolgp.engines import leaf_buffers  # imports numba
+
+    width = (4 if chord else 2) * n_halo
+    sel = np.flatnonzero(new_counts).tolist()
+    buffers: list[NDArray[np.uint8]] = []
+    if chord:
+        zero = np.zeros(width, dtype=np.uint8)
+        for j in sel:  # one buffer per leaf with new counts
+            leaf = leaves[j]
+            buffers.append(
+                zero.copy() if leaf is None else _chord_row(lattice_evidence(leaf), zero, own=True)
+            )
+    else:
+        for j in sel:
+            leaf = leaves[j]
+            c = None if leaf is None else lattice_evidence(leaf).counts
+            buffers.append(
+                c.copy()
+                if c is not None and c.shape[1] == n_halo
+                else np.zeros((2, n_halo), np.uint8)
+            )
+    at = leaf_buffers.addresses(buffers)
+    counts_at = np.zeros(len(leaves), dtype=np.int64)
+    chord_at = np.zeros(len(leaves), dtype=np.int64)
+    counts_at[sel] = at
+    if chord:
+        chord_at[sel] = at + 2 * n_halo
+    own = [_own_view(b, n_halo) for b in buffers]
+    return own, (counts_at, chord_at)
+
+
+def _own_view(
+    own: NDArray[np.uint8], n_halo: int
+) -> tuple[NDArray[np.uint8], NDArray[np.uint16] | None]:
+    """A leaf's counts, and sums where ``own`` holds them, as views of its own buffer."""
+    if own.ndim == 2:
+        return own, None
+    return own[: 2 * n_halo].reshape(2, n_halo), own[2 * n_halo :].view(np.uint16)
 
 
 def _own_rows(
@@ -364,10 +472,7 @@ def _own_rows(
     One copy: a row of counts only, shaped ``(2, n_halo)``, is the counts' own array;
     with sums, the counts and sums are views of the two halves of the leaf's one buffer.
     """
-    own = row.copy()
-    if own.ndim == 2:
-        return own, None
-    return own[: 2 * n_halo].reshape(2, n_halo), own[2 * n_halo :].view(np.uint16)
+    return _own_view(row.copy(), n_halo)
 
 
 def _advance_chord_pairs(
@@ -384,7 +489,8 @@ def _advance_chord_pairs(
 ) -> NDArray[np.bool_]:
     """Advance the pairs' summed chord shares: once per voxel where copies agree.
 
-    The numpy form of :func:`octolgp.engines.gather_kernel.chord_units`, which also
+    The numpy form of :func:`octolgp.engines.gather_kernel.chord_rule` and
+    :func:`~octolgp.engines.gather_kernel.leaf_flags`, which also
     serves where copies differ. ``unit`` is the counts' (``None``: each copy a unit of
     its own), ``counts0`` the units' stored return and free counts before the step and
     ``free01`` their effective free counts before and after it; writes the new sums
@@ -473,22 +579,26 @@ def gather_observations(
     n_halo = (grid.side + 2 * grid.halo_voxels) ** grid.dim
     current = [lookup(key) for key in keys]  # one call per touched leaf
     with_chord = obs.chord is not None  # the summed chord shares beside the counts
-    stacked = _stored_rows(current, n_halo, with_chord)
     cap = config.lattice.evidence_cap
-    at_h = inverse * stacked.shape[1] + flat  # each pair's return count in stacked.ravel()
-    flat_counts = stacked.reshape(-1)
-    # the rule and what changes, per unit (a voxel, or a copy should copies differ)
+    sources = _leaf_sources(current, n_halo, with_chord) if gather_kernel.AVAILABLE else None
     once = None
+    if sources is not None:  # compiled: each leaf's cells read where they are
+        from octolgp.engines import leaf_buffers  # imports numba
+
+        once = leaf_buffers.unit_values(voxel, inverse, flat, n_halo, *sources, obs.n_voxels)
+    # the rule and what changes, per unit (a voxel, or a copy should copies differ)
     unit: IntArray | None
-    if gather_kernel.AVAILABLE:  # one pass over the pairs, no per-pair arrays
-        once = gather_kernel.unit_counts(voxel, at_h, n_halo, flat_counts, obs.n_voxels)
+    stacked = None
     if once is not None:
-        unit, at, (h0, f0) = voxel, np.arange(obs.n_voxels), once
-    else:
+        unit, at, (h0, f0, w0) = voxel, np.arange(obs.n_voxels), once
+    else:  # numpy: the touched leaves' rows stacked
+        stacked = _stored_rows(current, n_halo, with_chord)
+        at_h = inverse * stacked.shape[1] + flat  # each pair's return count in stacked.ravel()
+        flat_counts = stacked.reshape(-1)
         before_h = flat_counts[at_h].astype(np.int64)
         before_f = flat_counts[at_h + n_halo].astype(np.int64)
         unit, at, h0, f0 = _voxel_units(before_h, before_f, voxel, obs.n_voxels)
-    state = (gather_kernel.advance if gather_kernel.AVAILABLE else advance)(h0, f0, obs, at, cap)
+    state = (gather_kernel.advance if once is not None else advance)(h0, f0, obs, at, cap)
     # what the leaf GP sees: its effective counts, and the kept returns
     eh0, ef0 = effective_counts(h0, f0, cap, obs.clear_scans)
     eh1, ef1 = effective_counts(state.hits, state.frees, cap, obs.clear_scans)
@@ -496,21 +606,25 @@ def gather_observations(
     moves = state.replace | state.drop
     effective = d_h | d_f | moves
     stored = effective | (state.hits != h0) | (state.frees != f0)
-    if unit is not None and gather_kernel.AVAILABLE:  # one pass over the pairs
-        refit, new_counts, gained = gather_kernel.scatter_units(
-            unit,
-            at_h,
-            inverse,
-            n_halo,
-            state,
-            effective,
-            stored,
-            d_h,
-            d_f,
-            flat_counts,
-            touched.size,
+    w_input: NDArray[np.bool_] | None = None  # the pairs whose summed shares, as seen, moved
+    own: list[tuple[NDArray[np.uint8], NDArray[np.uint16] | None]] | None = None
+    if once is not None:  # one pass over the pairs for the flags, one to write
+        w1, chord_flag = (None, None)
+        if with_chord:
+            w1, chord_flag = gather_kernel.chord_rule(obs, w0, (h0, f0), (ef0, ef1))
+        refit, new_counts, gained, w_input = gather_kernel.leaf_flags(
+            voxel, inverse, (effective, stored, d_h, d_f), chord_flag, touched.size
         )
+        own, targets = _new_buffers(current, new_counts, n_halo, with_chord)
+        from octolgp.engines import leaf_buffers
+
+        leaf_buffers.write_pairs(
+            voxel, inverse, flat, n_halo, *targets, state.hits, state.frees, w1
+        )
+        if not with_chord:
+            w_input = None
     else:
+        assert stacked is not None
         if unit is None:  # each copy its own unit
             copies = np.ones(h0.size, dtype=np.int64)
             hits_p, frees_p, effective_p, stored_p = state.hits, state.frees, effective, stored
@@ -525,34 +639,26 @@ def gather_observations(
         new_counts = np.zeros(touched.size, dtype=bool)
         new_counts[inverse[stored_p]] = True
         gained = int(copies[d_h].sum() + copies[d_f].sum())
-    stale_leaf = stale_flat = np.zeros(0, dtype=np.int64)
-    if fresh:  # the pairs whose GP input moved
-        moved_in = effective if unit is None else effective[unit]
-        stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
-    if with_chord:  # the summed chord shares: once per voxel where copies agree
-        per_row = stacked.shape[1] // 2  # uint16 per row: the counts, then the sums
-        flat_chord = flat_counts.view(np.uint16)
-        w_input = None
-        if unit is not None and gather_kernel.AVAILABLE:  # one pass, where the sums agree
-            w_input = gather_kernel.chord_units(
+        if with_chord:  # the summed chord shares: once per voxel where copies agree
+            per_row = stacked.shape[1] // 2  # uint16 per row: the counts, then the sums
+            at_w = inverse * per_row + n_halo + flat
+            w_input = _advance_chord_pairs(
                 voxel,
+                at_w,
                 inverse,
-                flat,
-                per_row,
-                n_halo,
-                flat_chord,
+                flat_counts.view(np.uint16),
                 obs,
+                unit,
                 (h0, f0),
                 (ef0, ef1),
                 refit,
                 new_counts,
             )
-        if w_input is None:
-            at_w = inverse * per_row + n_halo + flat
-            w_input = _advance_chord_pairs(
-                voxel, at_w, inverse, flat_chord, obs, unit, (h0, f0), (ef0, ef1), refit, new_counts
-            )
-        if fresh:
+    stale_leaf = stale_flat = np.zeros(0, dtype=np.int64)
+    if fresh:  # the pairs whose GP input moved
+        moved_in = effective if unit is None else effective[unit]
+        stale_leaf, stale_flat = inverse[moved_in], flat[moved_in]
+        if w_input is not None:
             stale_leaf = np.concatenate([stale_leaf, inverse[w_input]])
             stale_flat = np.concatenate([stale_flat, flat[w_input]])
     new_swept: dict[int, NDArray[np.bool_]] = {}
@@ -582,9 +688,11 @@ def gather_observations(
     full = grid.voxels_per_leaf
     touched_index = unpack_keys(touched, grid.dim)
     sel = np.flatnonzero(new_counts)
-    rows = stacked if with_chord else stacked.reshape(len(current), 2, n_halo)
-    for j, r in zip(sel.tolist(), refit[sel].tolist(), strict=True):
-        counts_j, chord_j = _own_rows(rows[j], n_halo)  # arrays of its own
+    if own is None:  # each leaf with new counts: its row's arrays of its own
+        assert stacked is not None
+        rows = stacked if with_chord else stacked.reshape(len(current), 2, n_halo)
+        own = [_own_rows(rows[j], n_halo) for j in sel.tolist()]
+    for j, r, (counts_j, chord_j) in zip(sel.tolist(), refit[sel].tolist(), own, strict=True):
         leaf = current[j]  # one iteration per leaf with new counts
         moved = returns.get(j)
         if leaf is None:
