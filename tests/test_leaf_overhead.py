@@ -30,7 +30,7 @@ from octolgp.engines.lattice import (
     return_points,
 )
 from octolgp.geometry import ray_kernel
-from octolgp.geometry.keys import pack_keys, unpack_keys
+from octolgp.geometry.keys import unpack_keys
 from octolgp.gp.lattice import Returns, lattice_posterior
 from octolgp.gp.plsc import latent_occupancy
 from octolgp.mapping.grid import LeafGrid
@@ -117,7 +117,7 @@ def reference_gather(
         state.drop[mv],
         state.replace[mv],
         state.position[mv],
-        pack_keys(obs.keys),
+        obs.keys,
         grid.dim,
     )
     changed: list[tuple[int, Leaf]] = []

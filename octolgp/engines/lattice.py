@@ -209,7 +209,7 @@ def _moved_returns(
     drop: NDArray[np.bool_],
     replace: NDArray[np.bool_],
     position: FloatArray,
-    packed_voxels: IntArray,
+    voxel_keys: IntArray,
     dim: int,
 ) -> dict[int, tuple[IntArray, FloatArray]]:
     """The kept returns of the leaves where some are new or forgotten, in voxel-key order.
@@ -220,12 +220,13 @@ def _moved_returns(
         The touched leaves (``None``: new).
     owner, voxel : ndarray of int64, shape (p,)
         Per (voxel, leaf) pair whose return moves: the leaf (index into ``leaves``) and
-        the voxel (index into ``packed_voxels``).
+        the voxel (row of ``voxel_keys``).
     drop, replace : ndarray of bool, shape (p,)
         The pair's kept return is forgotten; it becomes ``position``.
     position : ndarray of shape (p, d)
-    packed_voxels : ndarray of int64, shape (n,)
-        The step's observed voxels, ascending.
+    voxel_keys : ndarray of int64, shape (n, d)
+        The step's observed voxels' keys, ascending as packed keys (only those of the
+        pairs are packed).
     dim : int
 
     Returns
@@ -234,7 +235,9 @@ def _moved_returns(
         Per such leaf (index into ``leaves``): its kept returns' packed keys (ascending)
         and positions, arrays of its own.
     """
-    js = np.unique(owner)
+    if not owner.size:
+        return {}
+    js = np.flatnonzero(np.bincount(owner, minlength=len(leaves)))
     key_parts, pos_parts = [np.zeros(0, np.int64)], [np.zeros((0, dim))]
     old_n = np.zeros(js.size, dtype=np.int64)
     for row, j in enumerate(js.tolist()):  # one iteration per such leaf
@@ -248,19 +251,22 @@ def _moved_returns(
     old_keys, old_pos = np.concatenate(key_parts), np.concatenate(pos_parts)
     old_owner = np.repeat(js, old_n)
     # a (leaf, voxel) code per old return and per forgotten one: the voxel by its rank
-    n = packed_voxels.size
-    rank = np.minimum(np.searchsorted(packed_voxels, old_keys), max(n - 1, 0))
-    seen = packed_voxels[rank] == old_keys if n else np.zeros(old_keys.size, dtype=bool)
+    # among the forgotten ones' voxels (ascending, as their packed keys)
+    gone_voxels = np.unique(voxel[drop])
+    gone_keys = pack_keys(voxel_keys[gone_voxels])
+    n = max(gone_voxels.size, 1)
+    rank = np.minimum(np.searchsorted(gone_keys, old_keys), n - 1)
+    seen = gone_keys[rank] == old_keys if gone_voxels.size else np.zeros(old_keys.size, bool)
     old_code = np.where(seen, old_owner * n + rank, -1)
-    dropped = np.sort(owner[drop] * n + voxel[drop])  # few: a search beats np.isin's sort
+    dropped = np.sort(owner[drop] * n + np.searchsorted(gone_voxels, voxel[drop]))
     gone = sorted_contains(dropped, old_code)
     add = np.flatnonzero(replace)
-    keys = np.concatenate([old_keys[~gone], packed_voxels[voxel[add]]])
+    keys = np.concatenate([old_keys[~gone], pack_keys(voxel_keys[voxel[add]])])
     pos = np.concatenate([old_pos[~gone], position[add]])
     who = np.concatenate([old_owner[~gone], owner[add]])
     order = np.lexsort((keys, who))  # by leaf, then voxel key
     keys, pos, who = keys[order], pos[order], who[order]
-    bounds = np.searchsorted(who, np.r_[js, js[-1] + 1] if js.size else js)
+    bounds = np.searchsorted(who, np.append(js, js[-1] + 1))
     return {
         j: (keys[lo:hi].copy(), pos[lo:hi].copy())
         for j, lo, hi in zip(js.tolist(), bounds[:-1].tolist(), bounds[1:].tolist(), strict=True)
@@ -678,7 +684,7 @@ def gather_observations(
         state.drop[mv_unit],
         state.replace[mv_unit],
         state.position[mv_unit],
-        pack_keys(obs.keys),
+        obs.keys,
         grid.dim,
     )
     stale = _stale_tiles(stale_leaf, stale_flat, touched.size, grid, config) if fresh else None
