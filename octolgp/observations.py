@@ -31,6 +31,7 @@ insertion agree (``tests/test_observations.py`` checks :func:`advance` against
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -63,9 +64,6 @@ DENSE_PER_VOXEL = 64
 
 TIE_BAND = 1e-7
 """Distance, in voxels, from a border within which a crossing's order is decided exactly."""
-
-HIT = 4
-"""Bit of :func:`_observe_one`'s map: a return in the voxel (above the walk's bits)."""
 
 MAX_SCANS = 1 << 12
 """Scans whose observations are deduplicated in one pass (the scan number shares an
@@ -837,11 +835,14 @@ def _observe_one(
     """One scan's observations from one map over the box of its voxels (compiled walk).
 
     The returns' voxels and those the free segments pass through are marked in one
-    byte per cell of the box of keys holding them (:data:`HIT`, and the walk's
-    ``ray_kernel.FAR`` and ``ray_kernel.NEAR``), and each voxel's counts are read off
-    its byte: in one scan a voxel is seen occupied (a return in it) or free (a segment
-    through it, weakly where only near its return), never both. This is
-    :func:`observe`'s general path for one scan, without its sorts and searches.
+    byte per cell of the box of keys holding them (``ray_kernel.HIT``, and the walk's
+    ``ray_kernel.FAR`` and ``ray_kernel.NEAR``), and each voxel's counts, chord shares
+    and first return are read off its cell in one compiled pass
+    (``ray_kernel.read_marks``): in one scan a voxel is seen occupied (a return in it) or
+    free (a segment through it, weakly where only near its return), never both, so its
+    newer-evidence summary and its chord sums follow from its counts directly
+    (:func:`one_scan_summary`'s). This is :func:`observe`'s general path for one scan,
+    without its sorts and searches.
 
     Parameters
     ----------
@@ -858,21 +859,24 @@ def _observe_one(
         (``DENSE_CELLS``, ``DENSE_PER_VOXEL``): the general path serves.
     """
     dim, res, depth = config.dim, config.resolution, config.tree_depth
-    returns = ends[beams.is_hit]
+    # np.compress: the rows a mask keeps, at a third of boolean indexing's cost here
+    returns = np.compress(beams.is_hit, ends, axis=0)
     hit_keys = _voxel_keys(returns, res, depth)
     seg = beams.has_seg
-    start_pt, end_pt = origins[seg], beams.free_end[seg]
+    start_pt, end_pt = np.compress(seg, origins, axis=0), np.compress(seg, beams.free_end, axis=0)
     key0, key1, du, crossings, _, gap = _segment_crossings(start_pt, end_pt, res, depth)
-    corners = np.concatenate([key0, key1, hit_keys])
-    if corners.shape[0] == 0:
+    # an axis a row: numpy reduces along contiguous rows far faster than down columns
+    corners = np.concatenate([key0, key1, hit_keys]).T.copy()
+    if corners.shape[1] == 0:
         return None
-    low, high = corners.min(axis=0), corners.max(axis=0)
+    low, high = corners.min(axis=1), corners.max(axis=1)
     extent = high - low + 1
-    cells = int(np.prod(extent))
+    sizes = extent.tolist()
+    cells = math.prod(sizes)
     visits = int(crossings.sum()) + crossings.shape[0] + hit_keys.shape[0]
     if cells > min(DENSE_CELLS, DENSE_PER_VOXEL * visits):
         return None
-    stride = np.cumprod(np.r_[1, extent[:-1]])
+    stride = np.array([math.prod(sizes[:a]) for a in range(dim)], dtype=np.int64)
     move = np.where(du < 0, -stride, stride)
     near = _near_ends(beams, config)
     enter = np.full(key0.shape[0], np.inf) if near is None else _enter_near(near, start_pt, end_pt)
@@ -880,47 +884,38 @@ def _observe_one(
     start = (key0 - low) @ stride
     box = chord_box(config)
     weights = np.zeros(state.size if box else 0, dtype=np.int32)
-    chord = (key0, box, weights) if box else None
-    ray_kernel.walk_segments(start, move, crossings, gap, np.abs(du), enter, state, chord)
+    walk_chord = (key0, box, weights) if box else None
+    ray_kernel.walk_segments(start, move, crossings, gap, np.abs(du), enter, state, walk_chord)
     hit_cell = (hit_keys - low) @ stride
-    state[hit_cell] |= HIT
-    cell = ray_kernel.marked_cells(state, visits)
-    mark = state[cell]
-    keys = np.empty((cell.size, dim), dtype=np.int64)
-    for a in range(dim):  # cells ascend as packed keys do (x fastest)
-        keys[:, a] = cell // stride[a] % extent[a] + low[a]
-    hit = mark >= HIT
-    free = ~hit
-    hits, frees = hit.astype(np.int64), free.astype(np.int64)
-    first_hit = np.full((cell.size, dim), np.nan)
-    if hit_cell.size:  # the first return per voxel, in beam order, at the file's precision
-        points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
-        first = _first_of_each(hit_cell)
-        first_hit[np.searchsorted(cell, hit_cell[first])] = points[first]
-    obs = _without_forgetting(keys, hits, frees, first_hit)
-    if near is not None:
-        weak = (free & (mark == ray_kernel.NEAR)).astype(np.int64)
-        obs = one_scan_summary(dataclasses.replace(obs, weak_frees=weak), config.clear_scans)
-    if box:
-        shares = np.multiply(weights[cell], free, dtype=np.int64)
-        obs = one_scan_chord(obs, shares, chord_looks(config))
-    return obs
-
-
-def one_scan_chord(obs: VoxelObservations, shares: IntArray, looks: int) -> VoxelObservations:
-    """One scan's observations with its summed chord shares per voxel (0 where not free).
-
-    In one scan a voxel is seen free at most once: its first ``m`` looks are that one
-    for every ``m`` (the columns are views of one array), strong where it is not only
-    weak, and none follows a return.
-    """
-    strong = np.where(obs.strong_frees > 0, shares, 0)
-    n = shares.size
-    return dataclasses.replace(
-        obs,
-        chord=np.broadcast_to(shares[:, None], (n, looks)),
-        strong_chord=np.broadcast_to(strong[:, None], (n, looks)),
-        tail_chord=strong if obs.clear_scans else np.zeros(n, dtype=np.int64),
+    # the first return per voxel, in beam order, at the file's precision
+    points = step_points(return_steps(returns, hit_keys, res, depth), hit_keys, res, depth)
+    marks = ray_kernel.read_marks(
+        state, low, extent, hit_cell, points, visits, weights if box else None
+    )
+    n, k = marks.hits.size, config.clear_scans
+    zeros = np.zeros(n, dtype=np.int64)
+    chord = strong_chord = tail_chord = None
+    if box:  # a voxel is seen free at most once: its first m looks are that one, every m
+        looks = chord_looks(config)
+        chord = np.broadcast_to(marks.shares[:, None], (n, looks))
+        strong_chord = np.broadcast_to(marks.strong_shares[:, None], (n, looks))
+        tail_chord = marks.strong_shares if k else zeros
+    # a voxel with a return has no free look to summarise, one without has its strong
+    # look (if any) as its head and its tail; without forgetting no look is weak
+    return VoxelObservations(
+        marks.keys,
+        marks.hits,
+        marks.frees,
+        marks.weak,
+        marks.first_hit,
+        k,
+        marks.strong,
+        marks.strong,
+        zeros,
+        np.full((n, dim), np.nan),
+        chord,
+        strong_chord,
+        tail_chord,
     )
 
 

@@ -157,8 +157,7 @@ def split_beams(
         length, max_range, free_margin, free_range, no_return_range
     )
     is_hit = valid & ~no_return & ~truncated
-    direction = np.zeros_like(vec)
-    direction[valid] = vec[valid] / length[valid, None]
+    direction = np.divide(vec, length[:, None], out=np.zeros_like(vec), where=valid[:, None])
     has_seg = valid & (free_len > 1e-9)
     free_end = origins + direction * np.maximum(free_len, 0.0)[:, None]
     return Beams(length, is_hit, has_seg, free_end)

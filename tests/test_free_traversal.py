@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from octolgp import MapConfig, Scan, observations
-from octolgp.config import OnlineConfig, TrainingConfig
+from octolgp.config import LatticeConfig, OnlineConfig, TrainingConfig
 from octolgp.geometry.keys import KEY_BITS, pack_keys
 from octolgp.geometry.raycast import traverse_voxels
 from octolgp.observations import _free_codes, _observe_one, observe
@@ -301,17 +301,21 @@ def test_the_compiled_walk_gives_the_numpy_codes(dim: int, dedup: str) -> None:
 
 @pytest.mark.parametrize("dim", [2, 3])
 @pytest.mark.parametrize("clear_scans", [0, 4])
+@pytest.mark.parametrize("free_evidence", ["looks", "chord"])
 def test_one_scan_in_one_pass_gives_the_general_observations(
-    dim: int, clear_scans: int, dedup: str
+    dim: int, clear_scans: int, free_evidence: str, dedup: str
 ) -> None:
-    """observe's one-pass path for one scan (a map of its voxels, compiled walk) against its
-    general numpy path: every field equal, first returns bit for bit (NaN where none).
-    Sorted: the box is refused a map, and the general path serves both."""
+    """observe's one-pass path for one scan (a map of its voxels, compiled walk and
+    reading) against its general numpy path: every field equal, of the same dtype and
+    shape, first returns bit for bit (NaN where none), chord sums where kept. Sorted: the
+    box is refused a map, and the general path serves both."""
     if not observations.ray_kernel.AVAILABLE:
         pytest.skip("numba is not installed")
     res = RESOLUTION[dim]
     rng = np.random.default_rng(50 + dim)
-    config = _whole_beams_config(dim, clear_scans)
+    config = dataclasses.replace(
+        _whole_beams_config(dim, clear_scans), lattice=LatticeConfig(free_evidence=free_evidence)
+    )
     scans = _random_scans(rng, 2, dim) + _random_scans(rng, 2, dim, reach=8.0)
     grid = Scan(origin=np.zeros(dim), points=rng.integers(-40, 40, (200, dim)) * res / 4)
     one_pass = 0
@@ -325,10 +329,12 @@ def test_one_scan_in_one_pass_gives_the_general_observations(
             a, b = getattr(fast, field.name), getattr(ref, field.name)
             if isinstance(b, np.ndarray):
                 assert a.dtype == b.dtype, field.name
+                assert a.shape == b.shape, field.name
                 np.testing.assert_array_equal(a, b, err_msg=field.name)
             else:
                 assert a == b, field.name
         assert ref.n_voxels > len(scan)
+        assert (ref.chord is not None) == (free_evidence == "chord")
     assert one_pass >= 3 if dedup == "dense" else one_pass == 0
 
 
@@ -345,3 +351,89 @@ def test_marked_cells_are_the_nonzero_cells(cells: list[int], size: int, bit: in
     state[at] |= bit
     got = observations.ray_kernel.marked_cells(state, max(at.size, 1))
     np.testing.assert_array_equal(got, np.flatnonzero(state))
+
+
+def test_marked_cells_refuses_more_cells_than_most() -> None:
+    if not observations.ray_kernel.AVAILABLE:
+        pytest.skip("numba is not installed")
+    state = observations.ray_kernel.state_map(100)
+    state[[3, 40, 41, 99]] = observations.ray_kernel.FAR
+    np.testing.assert_array_equal(observations.ray_kernel.marked_cells(state, 4), [3, 40, 41, 99])
+    with pytest.raises(ValueError, match="more than 3"):
+        observations.ray_kernel.marked_cells(state, 3)
+
+
+def _read_with_numpy(
+    state: np.ndarray,
+    low: np.ndarray,
+    extent: np.ndarray,
+    hit_cell: np.ndarray,
+    hit_point: np.ndarray,
+    weights: np.ndarray | None,
+) -> dict[str, np.ndarray]:
+    """read_marks' fields by numpy, as observe's one-pass path read them before."""
+    rk = observations.ray_kernel
+    state = state.copy()
+    state[hit_cell] |= rk.HIT
+    cell = np.flatnonzero(state)
+    mark = state[cell]
+    stride = np.cumprod(np.r_[1, extent[:-1]])
+    keys = np.empty((cell.size, low.size), dtype=np.int64)
+    for a in range(low.size):
+        keys[:, a] = cell // stride[a] % extent[a] + low[a]
+    hit = mark >= rk.HIT
+    free = ~hit
+    weak = free & (mark == rk.NEAR)
+    first_hit = np.full((cell.size, low.size), np.nan)
+    first_cells, first = np.unique(hit_cell, return_index=True)
+    first_hit[np.searchsorted(cell, first_cells)] = hit_point[first]
+    shares = np.zeros(0, dtype=np.int64)
+    strong_shares = shares
+    if weights is not None:
+        shares = np.multiply(weights[cell], free, dtype=np.int64)
+        strong_shares = np.where(free & ~weak, shares, 0)
+    return {
+        "keys": keys,
+        "hits": hit.astype(np.int64),
+        "frees": free.astype(np.int64),
+        "weak": weak.astype(np.int64),
+        "strong": (free & ~weak).astype(np.int64),
+        "shares": shares,
+        "strong_shares": strong_shares,
+        "first_hit": first_hit,
+    }
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    st.lists(st.integers(1, 9), min_size=1, max_size=3),
+    st.floats(0.0, 1.0),
+    st.integers(0, 30),
+    st.booleans(),
+    st.integers(0, 2**32 - 1),
+)
+def test_read_marks_is_the_numpy_reading(
+    extent_list: list[int], density: float, n_hits: int, weighed: bool, seed: int
+) -> None:
+    """The compiled reading of a scan's state map against the numpy passes it replaces:
+    every field equal and of the same dtype; the first of a cell's returns kept."""
+    if not observations.ray_kernel.AVAILABLE:
+        pytest.skip("numba is not installed")
+    rk = observations.ray_kernel
+    rng = np.random.default_rng(seed)
+    extent = np.array(extent_list, dtype=np.int64)
+    low = rng.integers(0, 1 << 15, extent.size)
+    cells = int(np.prod(extent))
+    state = rk.state_map(cells)
+    walked = rng.random(cells) < density
+    state[:cells][walked] = rng.choice([rk.FAR, rk.NEAR, rk.FAR | rk.NEAR], int(walked.sum()))
+    hit_cell = rng.integers(0, cells, n_hits)  # repeats: the first return of a cell is kept
+    hit_point = rng.normal(size=(n_hits, extent.size))
+    weights = rng.integers(0, 1 << 20, state.size).astype(np.int32) if weighed else None
+    want = _read_with_numpy(state, low, extent, hit_cell, hit_point, weights)
+    got = rk.read_marks(state, low, extent, hit_cell, hit_point, cells, weights)
+    for field in dataclasses.fields(got):
+        a, b = getattr(got, field.name), want[field.name]
+        assert a.dtype == b.dtype, field.name
+        np.testing.assert_array_equal(a, b, err_msg=field.name)
+    np.testing.assert_array_equal(state[:cells] >= rk.HIT, np.isin(np.arange(cells), hit_cell))

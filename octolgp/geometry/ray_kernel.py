@@ -11,8 +11,10 @@ each voxel it enters is marked. The crossings' ``t`` are the numpy form's own, c
 the same way, so both give the same voxels (``tests/test_free_traversal.py``). Marks go
 into a byte per cell of a dense box of keys (a state map: bits for entered far from and
 near a segment's end, and any the caller adds), and :func:`marked_cells` lists the marked
-cells a word of eight at a time, since most of a box's cells are never entered. Without
-numba (:data:`AVAILABLE` false) the numpy form serves.
+cells a word of eight at a time, since most of a box's cells are never entered. For one
+scan, :func:`read_marks` adds the returns' bit and reads every marked cell as a voxel (its
+key, counts, chord shares and first return) in one pass over the list. Without numba
+(:data:`AVAILABLE` false) the numpy form serves.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import functools
 import importlib.util
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,6 +35,9 @@ FAR = 1
 NEAR = 2
 """Bit of a dense state map: a segment entered the voxel near its end."""
 
+HIT = 4
+"""Bit of a dense state map that :func:`read_marks` sets: a return in the voxel."""
+
 CHORD_UNITS = 1024
 """Units of a chord share: a voxel's share of a segment's chord through a box is kept as
 a whole number of 1/1024 (rounded to nearest, at least 1), exact when summed."""
@@ -40,6 +46,9 @@ AVAILABLE = importlib.util.find_spec("numba") is not None
 """Whether the compiled walk can run (numba is installed; it is imported on first use)."""
 
 IntArray = NDArray[np.int64]
+
+_Reading = tuple[IntArray, IntArray, IntArray, IntArray, IntArray, IntArray, IntArray, FloatArray]
+"""The fields of :class:`MarkedVoxels`, in order, as the compiled reading returns them."""
 
 
 def _walk(
@@ -132,28 +141,142 @@ def _walk(
     return k
 
 
+def _byte_tables() -> tuple[IntArray, IntArray]:
+    """For each 8-bit mask: the positions of its set bits, ascending (then zeros), and how many.
+
+    int64, as the loop adds them to int64 cells (a narrower table costs a conversion each).
+    """
+    positions = np.zeros((256, 8), dtype=np.int64)
+    counts = np.zeros(256, dtype=np.int64)
+    for mask in range(256):  # 256 masks, once at import
+        bits = [j for j in range(8) if mask >> j & 1]
+        positions[mask, : len(bits)] = bits
+        counts[mask] = len(bits)
+    return positions, counts
+
+
+_BYTE_CELLS, _BYTE_COUNT = _byte_tables()
+
+
 def _nonzero(
-    words: NDArray[np.uint64], state: NDArray[np.uint8], out: IntArray
+    words: NDArray[np.uint64],
+    out: IntArray,
+    most: int,
+    byte_cells: IntArray,
+    byte_count: IntArray,
 ) -> int:  # pragma: no cover - compiled; tested through the compiled form
-    """List the nonzero cells of ``state`` (``words`` its view, 8 cells a word) ascending."""
+    """List the cells of the nonzero bytes of ``words`` ascending; -1 past ``most`` of them.
+
+    A nonzero word's nonzero bytes become an 8-bit mask (a high bit per byte, gathered by
+    one multiplication), whose cells the tables give: its 8 slots are written and as many
+    as it has are kept, with no branch per cell. ``out`` has room for ``most + 8``.
+    """
+    low7 = np.uint64(0x7F7F7F7F7F7F7F7F)
+    gather = np.uint64(0x0102040810204080)  # bit 8 j + 7 → bit 56 + j
     k = 0
     for w in range(words.size):  # most words of a sparse map are zero: skipped whole
-        if words[w] != 0:
-            for c in range(8 * w, 8 * w + 8):
-                if state[c] != 0:
-                    out[k] = c
-                    k += 1
-    return k
+        x = words[w]
+        if x != 0:
+            if k > most:
+                return -1
+            high = (((x & low7) + low7) | x) & ~low7  # each nonzero byte's high bit
+            mask = np.int64(((high >> np.uint64(7)) * gather) >> np.uint64(56))
+            for j in range(8):
+                out[k + j] = 8 * w + byte_cells[mask, j]
+            k += byte_count[mask]
+    return k if k <= most else -1
+
+
+def _read(
+    cell: IntArray,
+    state: NDArray[np.uint8],
+    weights: NDArray[np.int32],
+    low: IntArray,
+    extent: IntArray,
+    hit_cell: IntArray,
+    hit_point: FloatArray,
+) -> _Reading:  # pragma: no cover - compiled; tested through the compiled form
+    """:func:`read_marks`' loops over the marked cells ``cell`` (ascending, up to 3 axes).
+
+    Returns the fields of :class:`MarkedVoxels` in order, the shares empty where
+    ``weights`` is. The first loop reads each cell's byte and decodes its key; the next
+    ones each fill arrays from arrays of the listed cells, a store per element, which is
+    what bounds them.
+    """
+    n, dim = cell.size, low.size
+    keys = np.empty((n, dim), dtype=np.int64)
+    mark = np.empty(n, dtype=np.uint8)
+    e0 = extent[0]
+    e1 = extent[1] if dim > 1 else 1
+    x0 = x1 = x2 = 0  # the current cell's key in the box: cell 0's at first
+    before = 0
+    for i in range(n):  # cells ascend: a step shorter than a row carries at most once
+        c = cell[i]
+        mark[i] = state[c]
+        step = c - before
+        before = c
+        if step < e0:
+            x0 += step
+            if x0 >= e0:
+                x0 -= e0
+                x1 += 1
+                if x1 >= e1:
+                    x1 -= e1
+                    x2 += 1
+        else:
+            x1 = c // e0
+            x0 = c - x1 * e0
+            x2 = x1 // e1
+            x1 -= x2 * e1
+        keys[i, 0] = x0 + low[0]
+        if dim > 1:
+            keys[i, 1] = x1 + low[1]
+        if dim > 2:
+            keys[i, 2] = x2 + low[2]
+    hits = np.empty(n, dtype=np.int64)
+    frees = np.empty(n, dtype=np.int64)
+    weak = np.empty(n, dtype=np.int64)
+    strong = np.empty(n, dtype=np.int64)
+    for i in range(n):  # weak: NEAR alone
+        hit = np.int64((mark[i] & HIT) != 0)
+        only_near = np.int64(mark[i] == NEAR)
+        hits[i] = hit
+        frees[i] = 1 - hit
+        weak[i] = only_near
+        strong[i] = 1 - hit - only_near
+    m = n if weights.size else 0
+    shares = np.empty(m, dtype=np.int64)
+    strong_shares = np.empty(m, dtype=np.int64)
+    for i in range(m):
+        shares[i] = weights[cell[i]] * frees[i]
+    for i in range(m):
+        strong_shares[i] = shares[i] * strong[i]
+    first_hit = np.empty((n, dim))
+    flat = first_hit.ravel()
+    for i in range(flat.size):
+        flat[i] = np.nan
+    for r in range(hit_cell.size - 1, -1, -1):  # the last written is the first given
+        lo, hi = 0, n
+        while lo < hi:  # the return's cell among the marked ones (it is marked)
+            mid = (lo + hi) >> 1
+            if cell[mid] < hit_cell[r]:
+                lo = mid + 1
+            else:
+                hi = mid
+        for a in range(dim):
+            first_hit[lo, a] = hit_point[r, a]
+    return keys, hits, frees, weak, strong, shares, strong_shares, first_hit
 
 
 @functools.cache
-def _compiled() -> tuple[Callable[..., int], Callable[..., int]]:
+def _compiled() -> tuple[Callable[..., int], Callable[..., int], Callable[..., _Reading]]:
     """The loops compiled by numba (cached on disk beside the module after the first run)."""
     from numba import njit
 
     walk: Callable[..., int] = njit(cache=True, nogil=True)(_walk)
     nonzero: Callable[..., int] = njit(cache=True, nogil=True)(_nonzero)
-    return walk, nonzero
+    read: Callable[..., _Reading] = njit(cache=True, nogil=True)(_read)
+    return walk, nonzero, read
 
 
 def state_map(cells: int) -> NDArray[np.uint8]:
@@ -171,11 +294,15 @@ def marked_cells(state: NDArray[np.uint8], most: int) -> IntArray:
     ------
     RuntimeError
         If numba is not available.
+    ValueError
+        If more than ``most`` cells are marked.
     """
     if not AVAILABLE:
         raise RuntimeError("the compiled traversal needs numba")
-    out = np.empty(most, dtype=np.int64)
-    written = _compiled()[1](state.view(np.uint64), state, out)
+    out = np.empty(most + 8, dtype=np.int64)
+    written = _compiled()[1](state.view(np.uint64), out, int(most), _BYTE_CELLS, _BYTE_COUNT)
+    if written < 0:
+        raise ValueError(f"the map holds more than {most} marked cells")
     return out[:written]
 
 
@@ -274,3 +401,104 @@ def walk_segments(
         out_weight,
     )
     return out[:written], out_near[:written], out_weight[: written if chord else 0]
+
+
+@dataclass(frozen=True)
+class MarkedVoxels:
+    """The marked cells of a state map over a box of keys, read as one scan's voxels.
+
+    A cell is seen occupied where :data:`HIT` is set, else seen free; weakly free where
+    only :data:`NEAR` is set (every segment through it entered it near its end).
+
+    Attributes
+    ----------
+    keys : ndarray of int64, shape (n, d)
+        The marked cells' keys, ascending by cell (the first axis fastest).
+    hits : ndarray of int64, shape (n,)
+        1 where the cell holds a return, else 0.
+    frees : ndarray of int64, shape (n,)
+        ``1 - hits``.
+    weak : ndarray of int64, shape (n,)
+        1 where the cell is seen free only near segments' ends, else 0.
+    strong : ndarray of int64, shape (n,)
+        ``frees - weak``.
+    shares : ndarray of int64, shape (n,) or (0,)
+        The cell's summed chord shares where it is seen free, else 0; empty without
+        ``weights``.
+    strong_shares : ndarray of int64, shape (n,) or (0,)
+        ``shares`` where ``strong`` is 1, else 0; empty without ``weights``.
+    first_hit : ndarray of shape (n, d)
+        The first of the given returns in the cell; NaN where none is.
+    """
+
+    keys: IntArray
+    hits: IntArray
+    frees: IntArray
+    weak: IntArray
+    strong: IntArray
+    shares: IntArray
+    strong_shares: IntArray
+    first_hit: FloatArray
+
+
+def read_marks(
+    state: NDArray[np.uint8],
+    low: IntArray,
+    extent: IntArray,
+    hit_cell: IntArray,
+    hit_point: FloatArray,
+    most: int,
+    weights: NDArray[np.int32] | None = None,
+) -> MarkedVoxels:
+    """Mark a scan's returns in its state map and read every marked cell as a voxel.
+
+    The numpy form lists ``np.flatnonzero(state)``, then decodes, classifies and
+    gathers with a pass over the listed cells per array and operation; these loops list
+    the cells a word at a time (:func:`marked_cells`), decode each cell's key from the
+    previous one's (no division but where a step skips a row), and fill each array in
+    one pass.
+
+    Parameters
+    ----------
+    state : ndarray of uint8
+        A state map (:func:`state_map`) over the box of keys ``low`` to
+        ``low + extent - 1``, the first axis fastest (cell ``(key - low) @ stride`` with
+        strides ``1, extent[0], extent[0] * extent[1]``); :data:`HIT` is or-ed into the
+        returns' cells.
+    low, extent : ndarray of int64, shape (d,)
+        The box's least key and its keys per axis, ``d`` at most 3.
+    hit_cell : ndarray of int64, shape (h,)
+        The returns' cells.
+    hit_point : ndarray of shape (h, d)
+        The returns, in the order whose first per cell ``first_hit`` keeps.
+    most : int
+        At least the marked cells once the returns are (a bound for the listing).
+    weights : ndarray of int32, optional
+        Summed chord shares per cell (:func:`walk_segments`' dense map); ``None``: none.
+
+    Returns
+    -------
+    MarkedVoxels
+
+    Raises
+    ------
+    RuntimeError
+        If numba is not available.
+    ValueError
+        If more than ``most`` cells are marked.
+    """
+    if not AVAILABLE:
+        raise RuntimeError("the compiled traversal needs numba")
+    state[hit_cell] |= HIT
+    cell = marked_cells(state, most)
+    c = np.ascontiguousarray
+    fields = _compiled()[2](
+        cell,
+        state,
+        np.zeros(0, dtype=np.int32) if weights is None else weights,
+        c(low, dtype=np.int64),
+        c(extent, dtype=np.int64),
+        c(hit_cell, dtype=np.int64),
+        c(hit_point, dtype=np.float64),
+    )
+    return MarkedVoxels(*fields)
