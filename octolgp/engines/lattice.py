@@ -80,6 +80,7 @@ _NONE_SWEPT = np.zeros(0, dtype=bool)
 _NONE_SWEPT.setflags(write=False)
 _NONE_CHORD = np.zeros(0, dtype=np.uint16)
 _NONE_CHORD.setflags(write=False)
+_U8, _U16 = np.dtype(np.uint8), np.dtype(np.uint16)
 
 
 @dataclass(frozen=True, slots=True)
@@ -393,26 +394,37 @@ def _leaf_sources(
 
     counts: list[np.ndarray | None] = []
     sums: list[np.ndarray | None] = []
-    for ev in (None if leaf is None else leaf.evidence for leaf in leaves):  # one per leaf
-        if ev is None:
+    in_buffer: list[int] = []  # leaves whose sums follow their counts in one buffer
+    width = 4 * n_halo
+    for j, leaf in enumerate(leaves):  # one iteration per leaf
+        if leaf is None:
             counts.append(None)
             sums.append(None)
             continue
-        ev = lattice_evidence_of(ev)
+        ev = leaf.evidence
+        if type(ev) is not LatticeEvidence:
+            ev = lattice_evidence_of(ev)
         c, w = ev.counts, ev.chord
         if c.shape[1] == n_halo:
-            if c.dtype != np.uint8 or not c.flags.c_contiguous:
+            if not (c.dtype is _U8 or c.dtype == _U8) or not c.flags.c_contiguous:
                 return None
             counts.append(c)
+            if chord and _one_buffer(ev, width) is not None:
+                in_buffer.append(j)  # as _new_buffers leaves them: at 2 n_halo bytes on
+                sums.append(None)
+                continue
         else:
             counts.append(None)
         if chord and w.size == n_halo:
-            if w.dtype != np.uint16 or not w.flags.c_contiguous:
+            if not (w.dtype is _U16 or w.dtype == _U16) or not w.flags.c_contiguous:
                 return None
             sums.append(w)
         else:
             sums.append(None)
-    return leaf_buffers.addresses(counts), leaf_buffers.addresses(sums)
+    counts_at = leaf_buffers.addresses(counts)
+    chord_at = leaf_buffers.addresses(sums)
+    chord_at[in_buffer] = counts_at[in_buffer] + 2 * n_halo
+    return counts_at, chord_at
 
 
 def _new_buffers(
