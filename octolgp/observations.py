@@ -744,7 +744,10 @@ def observe(
     chord = None
     if box:
         strong_or_all = np.ones(free_codes.size, bool) if strong_look is None else strong_look
-        chord = _chord_sums(obs, hit_codes, free_codes, shares, strong_or_all, config)
+        if one:  # each voxel seen free at most once: its look is its first m, every m
+            chord = _one_scan_sums(obs, free_codes & mask, shares, strong_or_all, config)
+        else:
+            chord = _chord_sums(obs, hit_codes, free_codes, shares, strong_or_all, config)
     if strong_look is not None:
         weak = np.zeros(obs.hits.size, dtype=np.int64)
         weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
@@ -827,6 +830,35 @@ def _chord_sums(
         return every, strong_sums, np.zeros(n, dtype=np.int64)
     tail = prefix(strong & (scan > last_hit[voxel]))[:, -1]
     return every, strong_sums, tail
+
+
+def _one_scan_sums(
+    obs: VoxelObservations,
+    free_vox: IntArray,
+    shares: IntArray,
+    strong: NDArray[np.bool_],
+    config: MapConfig,
+) -> tuple[IntArray, IntArray, IntArray]:
+    """:func:`_chord_sums` of one scan, directly.
+
+    In one scan a voxel is seen free at most once and never after a return of the same
+    scan, so the summed shares of its first ``m`` looks are its one look's share for
+    every ``m`` (the columns are views of one array), and that look, where strong, is
+    the tail after its last return. ``free_vox``: the packed voxels seen free,
+    ascending, with their ``shares`` and whether each look is ``strong``.
+    """
+    n, c = obs.hits.size, chord_looks(config)
+    share = np.zeros(n, dtype=np.int64)
+    at = np.searchsorted(pack_keys(obs.keys), free_vox)
+    share[at] = shares
+    strong_share = np.zeros(n, dtype=np.int64)
+    strong_share[at[strong]] = shares[strong]
+    tail = strong_share if config.clear_scans else np.zeros(n, dtype=np.int64)
+    return (
+        np.broadcast_to(share[:, None], (n, c)),
+        np.broadcast_to(strong_share[:, None], (n, c)),
+        tail,
+    )
 
 
 def _observe_one(

@@ -391,3 +391,39 @@ def test_stored_rows_read_every_kind_of_leaf() -> None:
     own_counts, own_sums = _own_rows(looks[0], n_halo)
     assert own_sums is None
     assert own_counts.base is None  # the leaf's own array
+
+
+@pytest.mark.parametrize("clear", [0, 3])
+@pytest.mark.parametrize("dim", [2, 3])
+def test_one_scans_sums_are_the_general_sums(
+    dim: int, clear: int, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The general path's sums of one scan, taken directly, against the sums of any run
+    of scans (_chord_sums) on the same looks: in one scan a (scan, voxel) code is the
+    voxel's packed key."""
+    from octolgp import observations
+
+    rng = np.random.default_rng(31 + dim + clear)
+    config = MapConfig(
+        dim=dim,
+        resolution=RES,
+        online=OnlineConfig(clear_scans=clear),
+        lattice=LatticeConfig(free_evidence="chord"),
+    )
+    real = observations._one_scan_sums
+    checked = []
+
+    def both(obs: VoxelObservations, free_vox: np.ndarray, *rest: object) -> object:
+        got = real(obs, free_vox, *rest)  # type: ignore[arg-type]
+        hit_codes = pack_keys(obs.keys[obs.hits > 0])
+        want = observations._chord_sums(obs, hit_codes, free_vox, *rest)  # type: ignore[arg-type]
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+        checked.append(bool(got[0].any()))
+        return got
+
+    monkeypatch.setattr(observations, "_one_scan_sums", both)
+    for scan in _flicker_scans(rng, dim, 4):
+        observe([scan], config, compiled=False)
+    assert checked
+    assert all(checked)
