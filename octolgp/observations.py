@@ -752,7 +752,7 @@ def observe(
         weak = np.zeros(obs.hits.size, dtype=np.int64)
         weak[np.searchsorted(pack_keys(obs.keys), weak_vox)] = weak_n
         obs = dataclasses.replace(obs, weak_frees=weak)
-        if len(scan_list) == 1:
+        if one:
             obs = one_scan_summary(obs, k)
         else:
             obs = _summarise(obs, hit_codes, code_points, free_codes[strong_look], k)
@@ -839,20 +839,32 @@ def _one_scan_sums(
     strong: NDArray[np.bool_],
     config: MapConfig,
 ) -> tuple[IntArray, IntArray, IntArray]:
-    """:func:`_chord_sums` of one scan, directly.
+    """:func:`_chord_sums` of one scan, directly (:func:`_one_look_sums` per voxel).
 
-    In one scan a voxel is seen free at most once and never after a return of the same
-    scan, so the summed shares of its first ``m`` looks are its one look's share for
-    every ``m`` (the columns are views of one array), and that look, where strong, is
-    the tail after its last return. ``free_vox``: the packed voxels seen free,
-    ascending, with their ``shares`` and whether each look is ``strong``.
+    ``free_vox``: the packed voxels seen free, ascending, with their ``shares`` and
+    whether each look is ``strong``.
     """
-    n, c = obs.hits.size, chord_looks(config)
+    n = obs.hits.size
     share = np.zeros(n, dtype=np.int64)
     at = np.searchsorted(pack_keys(obs.keys), free_vox)
     share[at] = shares
     strong_share = np.zeros(n, dtype=np.int64)
     strong_share[at[strong]] = shares[strong]
+    return _one_look_sums(share, strong_share, config)
+
+
+def _one_look_sums(
+    share: IntArray, strong_share: IntArray, config: MapConfig
+) -> tuple[IntArray, IntArray, IntArray]:
+    """``chord``, ``strong_chord`` and ``tail_chord`` of voxels seen free at most once.
+
+    In one scan a voxel is seen free at most once and never after a return of the same
+    scan, so the summed shares of its first ``m`` looks are its one look's ``share`` for
+    every ``m`` (the columns are views of one array), and that look, where strong, is
+    the tail after its last return (``strong_share``: the share where the look is
+    strong, else 0).
+    """
+    n, c = share.size, chord_looks(config)
     tail = strong_share if config.clear_scans else np.zeros(n, dtype=np.int64)
     return (
         np.broadcast_to(share[:, None], (n, c)),
@@ -925,13 +937,9 @@ def _observe_one(
         state, low, extent, hit_cell, points, visits, weights if box else None
     )
     n, k = marks.hits.size, config.clear_scans
-    zeros = np.zeros(n, dtype=np.int64)
     chord = strong_chord = tail_chord = None
-    if box:  # a voxel is seen free at most once: its first m looks are that one, every m
-        looks = chord_looks(config)
-        chord = np.broadcast_to(marks.shares[:, None], (n, looks))
-        strong_chord = np.broadcast_to(marks.strong_shares[:, None], (n, looks))
-        tail_chord = marks.strong_shares if k else zeros
+    if box:
+        chord, strong_chord, tail_chord = _one_look_sums(marks.shares, marks.strong_shares, config)
     # a voxel with a return has no free look to summarise, one without has its strong
     # look (if any) as its head and its tail; without forgetting no look is weak
     return VoxelObservations(
@@ -943,7 +951,7 @@ def _observe_one(
         k,
         marks.strong,
         marks.strong,
-        zeros,
+        np.zeros(n, dtype=np.int64),
         np.full((n, dim), np.nan),
         chord,
         strong_chord,
