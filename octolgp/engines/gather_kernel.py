@@ -381,7 +381,7 @@ def leaf_flags(
     state: tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]],
     chord_flag: NDArray[np.uint8] | None,
     n_touched: int,
-) -> tuple[NDArray[np.bool_], NDArray[np.bool_], int, NDArray[np.bool_]]:
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], int, NDArray[np.bool_] | None]:
     """Which leaves change, from what changes per unit, in one pass over the pairs.
 
     Parameters
@@ -402,8 +402,9 @@ def leaf_flags(
         The leaves holding a pair whose GP input / stored evidence moved.
     gained : int
         Pairs whose effective return count moved plus those whose free count did.
-    moved : ndarray of bool, shape (p,)
-        The pairs whose summed chord shares, as the GP sees them, moved.
+    moved : ndarray of bool, shape (p,), or None
+        The pairs whose summed chord shares, as the GP sees them, moved (``None``
+        without ``chord_flag``).
 
     Raises
     ------
@@ -416,11 +417,10 @@ def leaf_flags(
     refit = np.zeros(n_touched, dtype=bool)
     new_counts = np.zeros(n_touched, dtype=bool)
     moved = np.zeros(unit.size, dtype=bool)
-    if chord_flag is None:
-        chord_flag = np.zeros(effective.size, dtype=np.uint8)
+    flag = np.zeros(effective.size, dtype=np.uint8) if chord_flag is None else chord_flag
     flags = _compiled()[2]
-    gained = flags(unit, inverse, effective, stored, d_h, d_f, chord_flag, refit, new_counts, moved)
-    return refit, new_counts, int(gained), moved
+    gained = flags(unit, inverse, effective, stored, d_h, d_f, flag, refit, new_counts, moved)
+    return refit, new_counts, int(gained), None if chord_flag is None else moved
 
 
 def chord_rule(

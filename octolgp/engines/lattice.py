@@ -598,12 +598,13 @@ def gather_observations(
     current = [lookup(key) for key in keys]  # one call per touched leaf
     with_chord = obs.chord is not None  # the summed chord shares beside the counts
     cap = config.lattice.evidence_cap
-    sources = _leaf_sources(current, n_halo, with_chord) if gather_kernel.AVAILABLE else None
     once = None
-    if sources is not None:  # compiled: each leaf's cells read where they are
+    if gather_kernel.AVAILABLE:  # compiled: each leaf's cells read where they are
         from octolgp.engines import leaf_buffers  # imports numba
 
-        once = leaf_buffers.unit_values(voxel, inverse, flat, n_halo, *sources, obs.n_voxels)
+        sources = _leaf_sources(current, n_halo, with_chord)
+        if sources is not None:
+            once = leaf_buffers.unit_values(voxel, inverse, flat, n_halo, *sources, obs.n_voxels)
     # the rule and what changes, per unit (a voxel, or a copy should copies differ)
     unit: IntArray | None
     stacked = None
@@ -634,13 +635,9 @@ def gather_observations(
             voxel, inverse, (effective, stored, d_h, d_f), chord_flag, touched.size
         )
         own, targets = _new_buffers(current, new_counts, n_halo, with_chord)
-        from octolgp.engines import leaf_buffers
-
         leaf_buffers.write_pairs(
             voxel, inverse, flat, n_halo, *targets, state.hits, state.frees, w1
         )
-        if not with_chord:
-            w_input = None
     else:
         assert stacked is not None
         if unit is None:  # each copy its own unit
